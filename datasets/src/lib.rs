@@ -1,0 +1,1 @@
+//! Dataset tools for homing: the synthetic sequence generator and the TUM download tool.

@@ -1,0 +1,522 @@
+//! Typed configuration (TOML, one format everywhere).
+//!
+//! Every section rejects unknown keys (a typo must not silently fall back to a default) and
+//! every numeric value is range-checked after parsing; both kinds of error name the file, the
+//! line and the dotted key. All sections have defaults, so a config file only needs what it
+//! changes. The camera is special: it usually comes from the sequence (see [`resolve_camera`]).
+
+use crate::error::{Error, Result, read_text};
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// Pinhole camera with radial-tangential (OpenCV "plumb bob") distortion.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CameraConfig {
+    /// Free-form name printed when the camera is chosen (e.g. "TUM freiburg1").
+    #[serde(default)]
+    pub name: String,
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    #[serde(default)]
+    pub k1: f64,
+    #[serde(default)]
+    pub k2: f64,
+    #[serde(default)]
+    pub p1: f64,
+    #[serde(default)]
+    pub p2: f64,
+    #[serde(default)]
+    pub k3: f64,
+    pub width: u32,
+    pub height: u32,
+    /// Depth image units per metre (TUM: 5000; freiburg2 uses 5208 as in ORB-SLAM).
+    #[serde(default = "default_depth_scale")]
+    pub depth_scale: f64,
+    #[serde(default = "default_fps")]
+    pub fps: f64,
+}
+
+fn default_depth_scale() -> f64 {
+    5000.0
+}
+fn default_fps() -> f64 {
+    30.0
+}
+
+impl CameraConfig {
+    pub fn has_distortion(&self) -> bool {
+        [self.k1, self.k2, self.p1, self.p2, self.k3]
+            .iter()
+            .any(|&k| k != 0.0)
+    }
+}
+
+/// ORB extraction (ORB-SLAM defaults).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct OrbConfig {
+    pub n_features: u32,
+    pub n_levels: u32,
+    pub scale_factor: f64,
+    /// FAST threshold tried first in each grid cell ...
+    pub ini_fast_threshold: u32,
+    /// ... and the lower one used where the first finds nothing.
+    pub min_fast_threshold: u32,
+}
+
+impl Default for OrbConfig {
+    fn default() -> Self {
+        Self {
+            n_features: 1000,
+            n_levels: 8,
+            scale_factor: 1.2,
+            ini_fast_threshold: 20,
+            min_fast_threshold: 7,
+        }
+    }
+}
+
+/// Frame-to-map tracking.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TrackerConfig {
+    /// Inliers after pose refinement below which `able_to_track` is false.
+    pub min_inliers: u32,
+    /// Projection search radius in pixels at level 0.
+    pub search_radius_px: f64,
+    /// Maximum Hamming distance of an accepted descriptor match.
+    pub max_descriptor_distance: u32,
+    /// Lowe ratio between best and second-best match.
+    pub match_ratio: f64,
+    /// Huber threshold on the reprojection error, in pixels.
+    pub huber_px: f64,
+}
+
+impl Default for TrackerConfig {
+    fn default() -> Self {
+        Self {
+            min_inliers: 30,
+            search_radius_px: 15.0,
+            max_descriptor_distance: 64,
+            match_ratio: 0.9,
+            huber_px: 2.45,
+        }
+    }
+}
+
+/// Initialisation, keyframes and local mapping.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct MappingConfig {
+    /// RGB-D initializer: keypoints with valid depth needed to start a map.
+    pub min_init_depth_points: u32,
+    /// Depth readings beyond this are not used to create map points (metres).
+    pub max_point_depth_m: f64,
+    /// A keyframe is inserted when the tracked share of the reference keyframe's points drops
+    /// below this ratio (ORB-SLAM's 0.75 for RGB-D).
+    pub keyframe_tracked_ratio: f64,
+    /// ... or when this many frames passed since the last keyframe.
+    pub keyframe_max_interval: u32,
+    /// Local bundle adjustment iterations.
+    pub local_ba_iterations: u32,
+    /// Number of covisible keyframes optimised by local BA.
+    pub local_ba_window: u32,
+}
+
+impl Default for MappingConfig {
+    fn default() -> Self {
+        Self {
+            min_init_depth_points: 500,
+            max_point_depth_m: 4.0,
+            keyframe_tracked_ratio: 0.75,
+            keyframe_max_interval: 30,
+            local_ba_iterations: 10,
+            local_ba_window: 10,
+        }
+    }
+}
+
+/// Loop detection (HBST), validation (pooled RANSAC) and global optimisation.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LoopClosingConfig {
+    pub enabled: bool,
+    pub hbst_max_leaf_size: u32,
+    pub hbst_max_distance: u32,
+    /// Largest accepted |0.5 - set fraction| of the split bit of a node.
+    pub hbst_max_split_imbalance: f64,
+    /// Keyframes this recent are not closure candidates.
+    pub temporal_window: u32,
+    pub min_matches: u32,
+    pub min_inliers: u32,
+    pub min_inlier_ratio: f64,
+    /// Candidates that must agree before a closure pool is accepted.
+    pub pool_size: u32,
+    /// Normalised chi-square per edge above which the map is inconsistent.
+    pub max_normalized_chi2: f64,
+}
+
+impl Default for LoopClosingConfig {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            hbst_max_leaf_size: 100,
+            hbst_max_distance: 25,
+            hbst_max_split_imbalance: 0.45,
+            temporal_window: 20,
+            min_matches: 40,
+            min_inliers: 30,
+            min_inlier_ratio: 0.3,
+            pool_size: 3,
+            max_normalized_chi2: 3.0,
+        }
+    }
+}
+
+/// The modal controller (paper section IV/V).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum ControllerKind {
+    /// The SLAM state machine of the paper.
+    #[default]
+    Ours,
+    /// On loss only relocalize in the single map.
+    Orbslam2,
+    /// On loss start a new disconnected map.
+    Proslam,
+    /// On loss stop.
+    Ldso,
+}
+
+impl ControllerKind {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Ours => "ours",
+            Self::Orbslam2 => "orbslam2",
+            Self::Proslam => "proslam",
+            Self::Ldso => "ldso",
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ControllerConfig {
+    pub kind: ControllerKind,
+    /// Share of map points predicted visible that must be re-observed in Localized.
+    pub min_expectation_ratio: f64,
+    /// Consecutive failing frames before Localized declares the map corrupted.
+    pub corrupted_after_frames: u32,
+}
+
+impl Default for ControllerConfig {
+    fn default() -> Self {
+        Self {
+            kind: ControllerKind::Ours,
+            min_expectation_ratio: 0.3,
+            corrupted_after_frames: 5,
+        }
+    }
+}
+
+/// How a TUM folder is read.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SequenceConfig {
+    /// Colour/depth association tolerance in seconds (associate.py's max_difference).
+    pub max_association_dt: f64,
+    /// Ignore depth entirely (monocular mode).
+    pub mono: bool,
+}
+
+impl Default for SequenceConfig {
+    fn default() -> Self {
+        Self {
+            max_association_dt: 0.02,
+            mono: false,
+        }
+    }
+}
+
+/// A whole config file. Sections are optional; the camera may come from the sequence.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+pub struct Config {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub camera: Option<CameraConfig>,
+    #[serde(default)]
+    pub sequence: SequenceConfig,
+    #[serde(default)]
+    pub orb: OrbConfig,
+    #[serde(default)]
+    pub tracker: TrackerConfig,
+    #[serde(default)]
+    pub mapping: MappingConfig,
+    #[serde(default)]
+    pub loop_closing: LoopClosingConfig,
+    #[serde(default)]
+    pub controller: ControllerConfig,
+}
+
+/// Camera configs shipped with the binary (also in `configs/`), keyed by the TUM sensor name.
+pub const BUILTIN_CAMERAS: [(&str, &str); 3] = [
+    (
+        "freiburg1",
+        include_str!("../configs/tum_freiburg1.toml"),
+    ),
+    (
+        "freiburg2",
+        include_str!("../configs/tum_freiburg2.toml"),
+    ),
+    (
+        "freiburg3",
+        include_str!("../configs/tum_freiburg3.toml"),
+    ),
+];
+
+impl Config {
+    /// Parses and validates a config file.
+    pub fn load(path: &Path) -> Result<Self> {
+        let text = read_text(path)?;
+        Self::parse(&text, path)
+    }
+
+    /// Parses and validates config text; `path` is only used in error messages.
+    pub fn parse(text: &str, path: &Path) -> Result<Self> {
+        let cfg: Config = toml::from_str(text).map_err(|e| {
+            let line = e
+                .span()
+                .map(|s| 1 + text[..s.start.min(text.len())].matches('\n').count())
+                .unwrap_or(0);
+            Error::parse(path, line, e.message().to_string())
+        })?;
+        cfg.validate().map_err(|(key, msg)| {
+            Error::parse(path, find_key_line(text, &key), format!("{key}: {msg}"))
+        })?;
+        Ok(cfg)
+    }
+
+    /// Range checks; returns the dotted key and what is wrong with it.
+    pub fn validate(&self) -> std::result::Result<(), (String, String)> {
+        let mut c = Checker::default();
+        if let Some(cam) = &self.camera {
+            c.pos("camera.fx", cam.fx);
+            c.pos("camera.fy", cam.fy);
+            c.range("camera.cx", cam.cx, 0.0, cam.width as f64);
+            c.range("camera.cy", cam.cy, 0.0, cam.height as f64);
+            for (k, v) in [
+                ("camera.k1", cam.k1),
+                ("camera.k2", cam.k2),
+                ("camera.p1", cam.p1),
+                ("camera.p2", cam.p2),
+                ("camera.k3", cam.k3),
+            ] {
+                c.range(k, v, -100.0, 100.0);
+            }
+            c.range("camera.width", cam.width as f64, 1.0, 16384.0);
+            c.range("camera.height", cam.height as f64, 1.0, 16384.0);
+            c.pos("camera.depth_scale", cam.depth_scale);
+            c.range("camera.fps", cam.fps, 0.1, 1000.0);
+        }
+        let s = &self.sequence;
+        c.range("sequence.max_association_dt", s.max_association_dt, 0.0, 1.0);
+        let o = &self.orb;
+        c.range("orb.n_features", o.n_features as f64, 10.0, 100000.0);
+        c.range("orb.n_levels", o.n_levels as f64, 1.0, 16.0);
+        c.range("orb.scale_factor", o.scale_factor, 1.01, 2.0);
+        c.range("orb.ini_fast_threshold", o.ini_fast_threshold as f64, 1.0, 255.0);
+        c.range(
+            "orb.min_fast_threshold",
+            o.min_fast_threshold as f64,
+            1.0,
+            o.ini_fast_threshold as f64,
+        );
+        let t = &self.tracker;
+        c.range("tracker.min_inliers", t.min_inliers as f64, 3.0, 10000.0);
+        c.range("tracker.search_radius_px", t.search_radius_px, 1.0, 1000.0);
+        c.range(
+            "tracker.max_descriptor_distance",
+            t.max_descriptor_distance as f64,
+            0.0,
+            256.0,
+        );
+        c.range("tracker.match_ratio", t.match_ratio, 0.1, 1.0);
+        c.range("tracker.huber_px", t.huber_px, 0.1, 100.0);
+        let m = &self.mapping;
+        c.range("mapping.min_init_depth_points", m.min_init_depth_points as f64, 3.0, 100000.0);
+        c.range("mapping.max_point_depth_m", m.max_point_depth_m, 0.1, 100.0);
+        c.range("mapping.keyframe_tracked_ratio", m.keyframe_tracked_ratio, 0.0, 1.0);
+        c.range("mapping.keyframe_max_interval", m.keyframe_max_interval as f64, 1.0, 100000.0);
+        c.range("mapping.local_ba_iterations", m.local_ba_iterations as f64, 0.0, 1000.0);
+        c.range("mapping.local_ba_window", m.local_ba_window as f64, 1.0, 1000.0);
+        let l = &self.loop_closing;
+        c.range("loop_closing.hbst_max_leaf_size", l.hbst_max_leaf_size as f64, 1.0, 100000.0);
+        c.range("loop_closing.hbst_max_distance", l.hbst_max_distance as f64, 0.0, 256.0);
+        c.range("loop_closing.hbst_max_split_imbalance", l.hbst_max_split_imbalance, 0.0, 0.5);
+        c.range("loop_closing.temporal_window", l.temporal_window as f64, 0.0, 100000.0);
+        c.range("loop_closing.min_matches", l.min_matches as f64, 3.0, 100000.0);
+        c.range("loop_closing.min_inliers", l.min_inliers as f64, 3.0, 100000.0);
+        c.range("loop_closing.min_inlier_ratio", l.min_inlier_ratio, 0.0, 1.0);
+        c.range("loop_closing.pool_size", l.pool_size as f64, 1.0, 1000.0);
+        c.pos("loop_closing.max_normalized_chi2", l.max_normalized_chi2);
+        let k = &self.controller;
+        c.range("controller.min_expectation_ratio", k.min_expectation_ratio, 0.0, 1.0);
+        c.range("controller.corrupted_after_frames", k.corrupted_after_frames as f64, 1.0, 100000.0);
+        c.first.map_or(Ok(()), Err)
+    }
+}
+
+/// Collects the first failing range check.
+#[derive(Default)]
+struct Checker {
+    first: Option<(String, String)>,
+}
+
+impl Checker {
+    fn range(&mut self, key: &str, v: f64, lo: f64, hi: f64) {
+        if self.first.is_none() && !(v.is_finite() && v >= lo && v <= hi) {
+            self.first = Some((key.into(), format!("{v} is out of range [{lo}, {hi}]")));
+        }
+    }
+    fn pos(&mut self, key: &str, v: f64) {
+        if self.first.is_none() && !(v.is_finite() && v > 0.0) {
+            self.first = Some((key.into(), format!("{v} must be a positive number")));
+        }
+    }
+}
+
+/// Line (1-based) of `key = ...` inside its `[section]`, or 0 when the value came from a default.
+fn find_key_line(text: &str, dotted: &str) -> usize {
+    let (section, key) = dotted.split_once('.').unwrap_or(("", dotted));
+    let mut current = String::new();
+    for (i, raw) in text.lines().enumerate() {
+        let line = raw.trim();
+        if let Some(rest) = line.strip_prefix('[') {
+            current = rest.trim_end_matches(']').trim().to_string();
+        } else if current == section
+            && line
+                .split_once('=')
+                .is_some_and(|(k, _)| k.trim().trim_matches('"') == key)
+        {
+            return i + 1;
+        }
+    }
+    0
+}
+
+/// Where the camera of a run came from, printed at start-up.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub enum CameraSource {
+    ConfigFile(PathBuf),
+    SequenceFile(PathBuf),
+    FolderName(&'static str),
+}
+
+impl std::fmt::Display for CameraSource {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::ConfigFile(p) => write!(f, "from the config file {}", p.display()),
+            Self::SequenceFile(p) => write!(f, "from the sequence's own {}", p.display()),
+            Self::FolderName(n) => write!(
+                f,
+                "built-in TUM {n} camera (the folder name says {n}; pass --config to override)"
+            ),
+        }
+    }
+}
+
+/// Parses one of the built-in camera configs by TUM sensor name.
+pub fn builtin_camera(name: &str) -> Option<CameraConfig> {
+    let (_, text) = BUILTIN_CAMERAS.iter().find(|(n, _)| *n == name)?;
+    let cfg = Config::parse(text, Path::new(&format!("configs/tum_{name}.toml")))
+        .expect("built-in camera configs are valid (checked by tests)");
+    cfg.camera
+}
+
+/// Picks the camera: the config's `[camera]` if it has one, else a `camera.toml` inside the
+/// sequence folder, else `freiburg1/2/3` in the folder name.
+pub fn resolve_camera(
+    config: &Config,
+    config_path: Option<&Path>,
+    sequence_dir: &Path,
+) -> Result<(CameraConfig, CameraSource)> {
+    if let Some(cam) = &config.camera {
+        let src = config_path.map(Path::to_path_buf).unwrap_or_default();
+        return Ok((cam.clone(), CameraSource::ConfigFile(src)));
+    }
+    let own = sequence_dir.join("camera.toml");
+    if own.is_file() {
+        let cfg = Config::load(&own)?;
+        let cam = cfg
+            .camera
+            .ok_or_else(|| Error::file(&own, "has no [camera] section"))?;
+        return Ok((cam, CameraSource::SequenceFile(own)));
+    }
+    let folder = sequence_dir
+        .canonicalize()
+        .unwrap_or_else(|_| sequence_dir.to_path_buf());
+    let folder_name = folder
+        .file_name()
+        .map(|n| n.to_string_lossy().to_lowercase())
+        .unwrap_or_default();
+    for (name, _) in BUILTIN_CAMERAS {
+        if folder_name.contains(name) {
+            let cam = builtin_camera(name).expect("built-in camera");
+            return Ok((cam, CameraSource::FolderName(name)));
+        }
+    }
+    Err(Error::file(
+        sequence_dir,
+        "cannot tell the camera: no [camera] in --config, no camera.toml in the sequence and no \
+         freiburg1/2/3 in the folder name; pass --config configs/tum_freiburg1.toml or similar",
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn builtin_cameras_parse() {
+        for (name, _) in BUILTIN_CAMERAS {
+            let cam = builtin_camera(name).unwrap();
+            assert_eq!((cam.width, cam.height), (640, 480));
+        }
+        assert_eq!(builtin_camera("freiburg2").unwrap().depth_scale, 5208.0);
+        assert!(!builtin_camera("freiburg3").unwrap().has_distortion());
+    }
+
+    #[test]
+    fn unknown_key_names_key_and_line() {
+        let err = Config::parse("[orb]\nn_features = 500\nn_levles = 8\n", Path::new("x.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(err.starts_with("x.toml:3:"), "{err}");
+        assert!(err.contains("n_levles"), "{err}");
+    }
+
+    #[test]
+    fn out_of_range_names_key_and_line() {
+        let err = Config::parse("[tracker]\n\nmatch_ratio = 1.5\n", Path::new("y.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(err.starts_with("y.toml:3:"), "{err}");
+        assert!(err.contains("tracker.match_ratio"), "{err}");
+    }
+
+    #[test]
+    fn unknown_section_is_an_error() {
+        let err = Config::parse("[trackr]\nmin_inliers = 3\n", Path::new("z.toml")).unwrap_err();
+        assert!(err.to_string().contains("trackr"), "{err}");
+    }
+
+    #[test]
+    fn defaults_round_trip() {
+        let cfg = Config::default();
+        let text = toml::to_string(&cfg).unwrap();
+        assert_eq!(Config::parse(&text, Path::new("d.toml")).unwrap(), cfg);
+    }
+}

@@ -1,0 +1,1 @@
+//! Perturbations of a sequence (filled in below).

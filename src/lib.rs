@@ -1,0 +1,9 @@
+//! homing: visual SLAM (RGB-D and depth-suppressed monocular) whose modal behaviour is decided
+//! by one explicit hierarchical state machine ("Better Lost in Transition Than Lost in Space:
+//! SLAM State Machine"). See README.md for the architecture.
+
+pub mod config;
+pub mod error;
+pub mod io;
+
+pub use error::{Error, Result};
