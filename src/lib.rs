@@ -7,3 +7,7 @@ pub mod error;
 pub mod io;
 
 pub use error::{Error, Result};
+pub mod eval;
+pub mod geometry;
+pub mod output;
+pub mod system;

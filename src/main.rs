@@ -1,1 +1,262 @@
-fn main() {}
+//! The `homing` command line.
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, Parser, Subcommand};
+use homing::config::Config;
+use homing::eval::{self, Alignment, RpeUnit};
+use homing::io::perturb::{DropSpec, FaultRate, FaultSpec, PerturbationSpec};
+use homing::io::tum::read_trajectory;
+use homing::system::{RunOptions, run};
+use std::path::PathBuf;
+use tracing_subscriber::EnvFilter;
+
+#[derive(Parser)]
+#[command(name = "homing", version, about = "Visual SLAM driven by an explicit SLAM state machine")]
+struct Cli {
+    /// More log output (-v: debug, -vv: trace).
+    #[arg(short, long, action = clap::ArgAction::Count, global = true)]
+    verbose: u8,
+    /// Only warnings and errors.
+    #[arg(short, long, global = true)]
+    quiet: bool,
+    #[command(subcommand)]
+    cmd: Cmd,
+}
+
+#[derive(Subcommand)]
+enum Cmd {
+    /// Run on a TUM RGB-D folder and write the run outputs.
+    ///
+    /// Example: homing run --sequence data/rgbd_dataset_freiburg1_xyz --out out/fr1_xyz --eval
+    Run(RunArgs),
+    /// Evaluate an estimated trajectory against ground truth (ATE, RPE, coverage).
+    ///
+    /// Example: homing eval --gt seq/groundtruth.txt --est out/trajectory.txt --plot ate.png
+    Eval(EvalArgs),
+    /// Print the default configuration, or check a config file and print it resolved.
+    ///
+    /// Example: homing config --check my.toml
+    Config {
+        /// A config file to validate.
+        #[arg(long)]
+        check: Option<PathBuf>,
+    },
+}
+
+#[derive(Args)]
+struct RunArgs {
+    /// TUM RGB-D folder (rgb.txt, depth.txt, rgb/, depth/, optional groundtruth.txt).
+    #[arg(long)]
+    sequence: PathBuf,
+    /// Output folder (created if missing).
+    #[arg(long)]
+    out: PathBuf,
+    /// Config file (TOML). Without it, defaults and the camera picked from the sequence.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Remove frames START:END (frame indices, or seconds from the start with '.' or 's':
+    /// 120:240, 4.0:8.0, 4s:8s) so the camera jumps (kidnapping). Repeatable.
+    #[arg(long = "drop", value_name = "START:END")]
+    drops: Vec<DropSpec>,
+    /// Replace frames by false measurements: KIND@FRAMES with KIND black|noise|frozen|foreign,
+    /// FRAMES like 100,200-205. Repeatable.
+    #[arg(long = "fault", value_name = "KIND@FRAMES")]
+    faults: Vec<FaultSpec>,
+    /// Each frame becomes a KIND fault with probability P (KIND:P). Repeatable.
+    #[arg(long = "fault-rate", value_name = "KIND:P")]
+    fault_rates: Vec<FaultRate>,
+    /// Seed for random faults.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Suppress depth (monocular).
+    #[arg(long)]
+    mono: bool,
+    /// Evaluate against the sequence's groundtruth.txt and print the result.
+    #[arg(long)]
+    eval: bool,
+}
+
+#[derive(Args)]
+struct EvalArgs {
+    /// Ground truth, TUM format.
+    #[arg(long)]
+    gt: PathBuf,
+    /// Estimate, TUM format.
+    #[arg(long)]
+    est: PathBuf,
+    /// Alignment before ATE: se3 (RGB-D), sim3 (monocular) or none.
+    #[arg(long, value_enum, default_value = "se3")]
+    align: Alignment,
+    /// RPE delta.
+    #[arg(long, default_value_t = 1.0)]
+    rpe_delta: f64,
+    /// Unit of the RPE delta.
+    #[arg(long, value_enum, default_value = "s")]
+    rpe_unit: RpeUnit,
+    /// RPE over all (overlapping) pairs; in frames the default is evo's non-overlapping pairs.
+    #[arg(long)]
+    all_pairs: bool,
+    /// Maximum time difference for associating estimate and ground truth (seconds).
+    #[arg(long, default_value_t = 0.02)]
+    max_dt: f64,
+    /// The sequence the estimate came from: coverage is the share of its frames that have
+    /// ground truth and a pose. Without it, coverage is taken from a summary.json next to EST.
+    #[arg(long)]
+    sequence: Option<PathBuf>,
+    /// Print JSON instead of text.
+    #[arg(long)]
+    json: bool,
+    /// Write a plot (top view and error over time) to this PNG file.
+    #[arg(long)]
+    plot: Option<PathBuf>,
+}
+
+fn main() {
+    let cli = Cli::parse();
+    let level = match (cli.quiet, cli.verbose) {
+        (true, _) => "warn",
+        (false, 0) => "info",
+        (false, 1) => "debug",
+        _ => "trace",
+    };
+    tracing_subscriber::fmt()
+        .with_env_filter(EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(level)))
+        .with_writer(std::io::stderr)
+        .with_target(false)
+        .init();
+    let result = match cli.cmd {
+        Cmd::Run(a) => cmd_run(a),
+        Cmd::Eval(a) => cmd_eval(a),
+        Cmd::Config { check } => cmd_config(check),
+    };
+    if let Err(e) = result {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
+}
+
+fn cmd_run(a: RunArgs) -> Result<()> {
+    let opts = RunOptions {
+        sequence: a.sequence,
+        out: a.out.clone(),
+        config: a.config,
+        perturb: PerturbationSpec {
+            drops: a.drops,
+            faults: a.faults,
+            fault_rates: a.fault_rates,
+            seed: a.seed,
+            mono: a.mono,
+        },
+        eval: a.eval,
+        command: std::env::args().collect(),
+    };
+    let s = run(&opts)?;
+    println!(
+        "{} frames delivered ({} in the sequence), {} with a pose, {} keyframes, {} maps, final state {}",
+        s.frames, s.sequence_frames, s.frames_with_pose, s.keyframes, s.maps, s.final_state
+    );
+    if let Some(ev) = &s.evaluation {
+        println!("evaluation: {}", serde_json::to_string_pretty(ev)?);
+    }
+    println!("outputs in {}", a.out.display());
+    Ok(())
+}
+
+fn cmd_eval(a: EvalArgs) -> Result<()> {
+    let gt = read_trajectory(&a.gt)?;
+    let est = read_trajectory(&a.est)?;
+    if gt.is_empty() {
+        bail!("{}: holds no poses", a.gt.display());
+    }
+    if est.is_empty() {
+        bail!("{}: holds no poses", a.est.display());
+    }
+    let assoc = eval::associate_and_align(&gt, &est, a.align, a.max_dt)?;
+    let ate = eval::ate(&assoc, a.align);
+    let rpe = eval::rpe(&assoc, a.rpe_delta, a.rpe_unit, a.all_pairs);
+    let coverage = coverage_for(&a, &gt, &est)?;
+    if let Some(p) = &a.plot {
+        let title = format!("{} vs {}", a.est.display(), a.gt.display());
+        eval::plot::plot_ate(p, &gt, &assoc, &ate, &title)?;
+    }
+    if a.json {
+        let v = serde_json::json!({
+            "ate": ate,
+            "rpe": rpe.as_ref().ok(),
+            "rpe_error": rpe.as_ref().err().map(|e| e.to_string()),
+            "coverage": coverage,
+            "estimate_poses": est.len(),
+            "groundtruth_poses": gt.len(),
+        });
+        println!("{}", serde_json::to_string_pretty(&v)?);
+        return Ok(());
+    }
+    let s = &ate.stats;
+    println!("ATE ({:?}-aligned, {} associated poses of {} estimated)", a.align, ate.pairs, est.len());
+    println!("  rmse   {:.6} m", s.rmse);
+    println!("  mean   {:.6} m", s.mean);
+    println!("  median {:.6} m", s.median);
+    println!("  std    {:.6} m", s.std);
+    println!("  min    {:.6} m", s.min);
+    println!("  max    {:.6} m", s.max);
+    if a.align == Alignment::Sim3 {
+        println!("  scale  {:.6}", ate.scale);
+    }
+    match &rpe {
+        Ok(r) => {
+            println!("RPE (delta {} {:?}, {} pairs)", r.delta, r.unit, r.pairs);
+            println!("  trans rmse {:.6} m", r.trans.rmse);
+            println!("  rot   rmse {:.6} deg", r.rot_deg.rmse);
+        }
+        Err(e) => println!("RPE: {e}"),
+    }
+    match coverage {
+        Some(c) => println!("coverage {:.2} %", 100.0 * c),
+        None => println!("coverage: unknown (pass --sequence DIR)"),
+    }
+    Ok(())
+}
+
+/// Coverage needs the frames the estimate could have had: from --sequence, or from the
+/// summary.json that `homing run` writes next to its trajectory.
+fn coverage_for(
+    a: &EvalArgs,
+    gt: &[homing::io::tum::StampedPose],
+    est: &[homing::io::tum::StampedPose],
+) -> Result<Option<f64>> {
+    let seq_dir = match &a.sequence {
+        Some(d) => Some(d.clone()),
+        None => {
+            let summary = a.est.with_file_name("summary.json");
+            if summary.is_file() {
+                let text = std::fs::read_to_string(&summary)
+                    .with_context(|| format!("{}: cannot read", summary.display()))?;
+                let v: serde_json::Value = serde_json::from_str(&text)
+                    .with_context(|| format!("{}: not valid JSON", summary.display()))?;
+                v.get("sequence").and_then(|s| s.as_str()).map(PathBuf::from)
+            } else {
+                None
+            }
+        }
+    };
+    let Some(dir) = seq_dir else { return Ok(None) };
+    let rgb = dir.join("rgb.txt");
+    if !rgb.is_file() {
+        return Ok(None);
+    }
+    let stamps: Vec<f64> = homing::io::tum::read_list(&rgb)?.iter().map(|e| e.t).collect();
+    let eligible = eval::eligible_stamps(&stamps, gt, a.max_dt);
+    Ok(Some(eval::coverage(&eligible, est, a.max_dt)))
+}
+
+fn cmd_config(check: Option<PathBuf>) -> Result<()> {
+    let cfg = match &check {
+        Some(p) => Config::load(p)?,
+        None => Config::default(),
+    };
+    print!("{}", toml::to_string(&cfg)?);
+    if let Some(p) = check {
+        eprintln!("{}: valid", p.display());
+    }
+    Ok(())
+}

@@ -1,0 +1,92 @@
+//! Small geometry helpers shared by components and evaluation.
+
+use nalgebra::{Matrix3, Rotation3, Vector3};
+
+/// A similarity transform `p ↦ s·R·p + t`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Sim3 {
+    pub rotation: Rotation3<f64>,
+    pub translation: Vector3<f64>,
+    pub scale: f64,
+}
+
+impl Sim3 {
+    pub fn identity() -> Self {
+        Self { rotation: Rotation3::identity(), translation: Vector3::zeros(), scale: 1.0 }
+    }
+    pub fn transform_point(&self, p: &Vector3<f64>) -> Vector3<f64> {
+        self.scale * (self.rotation * p) + self.translation
+    }
+}
+
+/// Least-squares alignment of point sets (Umeyama 1991): finds `T` minimising
+/// `Σ ‖y_i − T(x_i)‖²`, with the scale fixed to 1 unless `with_scale`. This is the same
+/// estimator as evo's `umeyama_alignment` (including the reflection fix), so ATE numbers agree.
+/// Returns `None` for fewer than 3 points or degenerate (collinear / coincident) input.
+pub fn umeyama(x: &[Vector3<f64>], y: &[Vector3<f64>], with_scale: bool) -> Option<Sim3> {
+    let n = x.len();
+    if n < 3 || y.len() != n {
+        return None;
+    }
+    let nf = n as f64;
+    let mx = x.iter().sum::<Vector3<f64>>() / nf;
+    let my = y.iter().sum::<Vector3<f64>>() / nf;
+    let mut sigma_x = 0.0;
+    let mut cov = Matrix3::zeros();
+    for (xi, yi) in x.iter().zip(y) {
+        let dx = xi - mx;
+        sigma_x += dx.norm_squared();
+        cov += (yi - my) * dx.transpose();
+    }
+    sigma_x /= nf;
+    cov /= nf;
+    let svd = cov.svd(true, true);
+    let (u, v_t) = (svd.u?, svd.v_t?);
+    let mut s = Matrix3::identity();
+    if u.determinant() * v_t.determinant() < 0.0 {
+        s[(2, 2)] = -1.0;
+    }
+    // Rank check: with fewer than two non-zero singular values the rotation is undetermined.
+    let mut sv = svd.singular_values;
+    sv.as_mut_slice().sort_by(|a, b| b.partial_cmp(a).unwrap_or(std::cmp::Ordering::Equal));
+    if !(sv[1] > 1e-12 * sv[0].max(1e-300)) || sigma_x <= 0.0 {
+        return None;
+    }
+    let r = u * s * v_t;
+    let scale = if with_scale {
+        (Matrix3::from_diagonal(&svd.singular_values) * s).trace() / sigma_x
+    } else {
+        1.0
+    };
+    let t = my - scale * (r * mx);
+    Some(Sim3 { rotation: Rotation3::from_matrix_unchecked(r), translation: t, scale })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Vector3;
+
+    #[test]
+    fn umeyama_recovers_similarity() {
+        let truth = Sim3 {
+            rotation: Rotation3::from_euler_angles(0.3, -0.2, 1.1),
+            translation: Vector3::new(1.0, -2.0, 0.5),
+            scale: 2.5,
+        };
+        let x: Vec<_> = (0..20)
+            .map(|i| {
+                let f = i as f64;
+                Vector3::new(f.sin(), (0.7 * f).cos(), 0.1 * f)
+            })
+            .collect();
+        let y: Vec<_> = x.iter().map(|p| truth.transform_point(p)).collect();
+        let est = umeyama(&x, &y, true).unwrap();
+        assert!((est.scale - 2.5).abs() < 1e-9);
+        assert!((est.translation - truth.translation).norm() < 1e-9);
+        assert!(est.rotation.angle_to(&truth.rotation) < 1e-9);
+        assert!(umeyama(&x[..2], &y[..2], true).is_none());
+        let line: Vec<_> = (0..5).map(|i| Vector3::new(i as f64, 0.0, 0.0)).collect();
+        assert!(umeyama(&line, &line, false).is_none());
+    }
+}

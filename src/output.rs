@@ -1,0 +1,244 @@
+//! The run-output contract: what `homing run --out OUTDIR` writes. Every later component fills
+//! parts of it; its shape is fixed here so that evaluation and benchmarks can rely on it.
+//!
+//! | file | content |
+//! |---|---|
+//! | `trajectory.txt` | TUM: every frame that has a pose (camera-to-world) |
+//! | `keyframes.txt` | TUM + map id: `timestamp tx ty tz qx qy qz qw map_id` |
+//! | `states.csv` | one row per delivered frame: active state, transition (from, trigger) and the flags |
+//! | `closures.csv` | every closure / relocalization candidate with its verdict |
+//! | `summary.json` | counts, final state, perturbations, config, per-stage timing, wall time |
+//!
+//! All files are written atomically, so an interrupted run never leaves a half-written result.
+
+use crate::config::{CameraConfig, CameraSource, Config};
+use crate::error::{Error, Result};
+use crate::io::atomic_write;
+use crate::io::perturb::PerturbationPlan;
+use crate::io::tum::{StampedPose, format_pose, write_trajectory};
+use nalgebra::Isometry3;
+use serde::Serialize;
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+/// The component status flags the state machine's guards read (paper Table I).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+pub struct Flags {
+    pub initialized: bool,
+    pub able_to_track: bool,
+    pub able_to_localize: bool,
+    pub consistent_map: bool,
+}
+
+/// One row of `states.csv`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StateRow {
+    pub frame: usize,
+    pub t: f64,
+    /// Active state(s) after this frame, e.g. `Mapping` or `Core(M&R)`.
+    pub state: String,
+    /// Set on the frame where a transition happened.
+    pub transition: Option<Transition>,
+    pub flags: Flags,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct Transition {
+    pub from: String,
+    pub trigger: String,
+}
+
+/// One row of `closures.csv`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ClosureRow {
+    pub t_query: f64,
+    pub t_match: f64,
+    pub map_query: u32,
+    pub map_match: u32,
+    /// Pose of the query keyframe in the match keyframe's frame.
+    pub relative: Isometry3<f64>,
+    pub inliers: u32,
+    /// `accepted`, `rejected:<reason>` or `pending`.
+    pub verdict: String,
+}
+
+/// Per-stage timing, in milliseconds per frame.
+#[derive(Debug, Clone, Default)]
+pub struct Timing {
+    samples: BTreeMap<String, Vec<f64>>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct TimingStats {
+    pub median_ms: f64,
+    pub p90_ms: f64,
+    pub max_ms: f64,
+    pub mean_ms: f64,
+    pub count: usize,
+}
+
+impl Timing {
+    pub fn record(&mut self, stage: &str, ms: f64) {
+        self.samples.entry(stage.to_string()).or_default().push(ms);
+    }
+
+    /// Runs `f`, recording its duration under `stage`.
+    pub fn time<T>(&mut self, stage: &str, f: impl FnOnce() -> T) -> T {
+        let start = std::time::Instant::now();
+        let out = f();
+        self.record(stage, start.elapsed().as_secs_f64() * 1e3);
+        out
+    }
+
+    pub fn summary(&self) -> BTreeMap<String, TimingStats> {
+        self.samples
+            .iter()
+            .filter(|(_, v)| !v.is_empty())
+            .map(|(k, v)| {
+                let mut s = v.clone();
+                s.sort_by(|a, b| a.total_cmp(b));
+                let pick = |q: f64| s[((s.len() - 1) as f64 * q).round() as usize];
+                let stats = TimingStats {
+                    median_ms: pick(0.5),
+                    p90_ms: pick(0.9),
+                    max_ms: s[s.len() - 1],
+                    mean_ms: s.iter().sum::<f64>() / s.len() as f64,
+                    count: s.len(),
+                };
+                (k.clone(), stats)
+            })
+            .collect()
+    }
+}
+
+/// `summary.json`.
+#[derive(Debug, Clone, Serialize)]
+pub struct Summary {
+    pub homing_version: &'static str,
+    pub sequence: PathBuf,
+    /// The command line that produced the run.
+    pub command: Vec<String>,
+    /// Frames in the unperturbed sequence.
+    pub sequence_frames: usize,
+    /// Frames delivered to the system (after drops).
+    pub frames: usize,
+    pub frames_with_pose: usize,
+    pub keyframes: usize,
+    pub maps: usize,
+    pub closures_accepted: usize,
+    pub closures_rejected: usize,
+    pub final_state: String,
+    pub perturbations: PerturbationPlan,
+    pub camera: CameraConfig,
+    pub camera_source: String,
+    pub config: Config,
+    pub timing: BTreeMap<String, TimingStats>,
+    pub wall_time_s: f64,
+    /// Evaluation against the sequence's ground truth, when asked for (`--eval`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub evaluation: Option<serde_json::Value>,
+    /// The input error that ended the run early, if any (outputs up to it are still written).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+}
+
+/// Writer for one run's output folder.
+pub struct RunOutputs {
+    pub dir: PathBuf,
+}
+
+impl RunOutputs {
+    pub fn create(dir: &Path) -> Result<Self> {
+        std::fs::create_dir_all(dir)
+            .map_err(|e| Error::file(dir, format!("cannot create output folder: {e}")))?;
+        Ok(Self { dir: dir.to_path_buf() })
+    }
+
+    pub fn path(&self, name: &str) -> PathBuf {
+        self.dir.join(name)
+    }
+
+    pub fn write_trajectory(&self, poses: &[StampedPose]) -> Result<()> {
+        write_trajectory(
+            &self.path("trajectory.txt"),
+            poses,
+            "homing trajectory (camera-to-world, TUM format)",
+        )
+    }
+
+    pub fn write_keyframes(&self, keyframes: &[(StampedPose, u32)]) -> Result<()> {
+        let mut s = String::from("# homing keyframes (camera-to-world)\n# timestamp tx ty tz qx qy qz qw map_id\n");
+        for (p, map) in keyframes {
+            s.push_str(&format_pose(p, Some(&map.to_string())));
+            s.push('\n');
+        }
+        atomic_write(&self.path("keyframes.txt"), s.as_bytes())
+    }
+
+    pub fn write_states(&self, rows: &[StateRow]) -> Result<()> {
+        let mut s = String::from(
+            "frame,timestamp,state,from,trigger,initialized,able_to_track,able_to_localize,consistent_map\n",
+        );
+        for r in rows {
+            let (from, trig) = r
+                .transition
+                .as_ref()
+                .map_or(("", ""), |t| (t.from.as_str(), t.trigger.as_str()));
+            let b = |v: bool| u8::from(v);
+            let _ = writeln!(
+                s,
+                "{},{:.6},{},{},{},{},{},{},{}",
+                r.frame,
+                r.t,
+                r.state,
+                from,
+                trig,
+                b(r.flags.initialized),
+                b(r.flags.able_to_track),
+                b(r.flags.able_to_localize),
+                b(r.flags.consistent_map)
+            );
+        }
+        atomic_write(&self.path("states.csv"), s.as_bytes())
+    }
+
+    pub fn write_closures(&self, rows: &[ClosureRow]) -> Result<()> {
+        let mut s = String::from(
+            "t_query,t_match,map_query,map_match,tx,ty,tz,qx,qy,qz,qw,inliers,verdict\n",
+        );
+        for r in rows {
+            let t = r.relative.translation.vector;
+            let q = r.relative.rotation.quaternion().coords;
+            let _ = writeln!(
+                s,
+                "{:.6},{:.6},{},{},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{},{}",
+                r.t_query, r.t_match, r.map_query, r.map_match, t.x, t.y, t.z, q.x, q.y, q.z, q.w,
+                r.inliers, r.verdict
+            );
+        }
+        atomic_write(&self.path("closures.csv"), s.as_bytes())
+    }
+
+    pub fn write_summary(&self, summary: &Summary) -> Result<()> {
+        let mut json = serde_json::to_vec_pretty(summary)
+            .map_err(|e| Error::invalid(format!("cannot serialise summary: {e}")))?;
+        json.push(b'\n');
+        atomic_write(&self.path("summary.json"), &json)
+    }
+}
+
+/// Prints where the camera came from (the issue asks for the choice to be visible).
+pub fn describe_camera(cam: &CameraConfig, src: &CameraSource) -> String {
+    format!(
+        "camera: {} {}x{} fx={} fy={} cx={} cy={} depth_scale={} — {src}",
+        if cam.name.is_empty() { "(unnamed)" } else { &cam.name },
+        cam.width,
+        cam.height,
+        cam.fx,
+        cam.fy,
+        cam.cx,
+        cam.cy,
+        cam.depth_scale
+    )
+}

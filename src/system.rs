@@ -1,0 +1,173 @@
+//! The run driver: sequence in, perturbations applied, one `step` per delivered frame, run
+//! outputs written. What runs inside a step is decided by the controller; the components
+//! (initializer, tracker, map merger, loop closing) are wired in by their own modules.
+//!
+//! Without an initializer the controller can never leave Init, so a run reports every frame in
+//! Init and ends in Final at the end of data: exactly what the state machine prescribes.
+
+use crate::config::{Config, resolve_camera};
+use crate::error::{Error, Result};
+use crate::eval::{self, Alignment, RpeUnit};
+use crate::io::perturb::{PerturbationSpec, PerturbedSequence};
+use crate::io::tum::{FrameSource, StampedPose, TumSequence};
+use crate::output::{
+    ClosureRow, Flags, RunOutputs, StateRow, Summary, Timing, Transition, describe_camera,
+};
+use std::path::PathBuf;
+use std::time::Instant;
+
+/// What `homing run` is asked to do.
+#[derive(Debug, Clone, Default)]
+pub struct RunOptions {
+    pub sequence: PathBuf,
+    pub out: PathBuf,
+    pub config: Option<PathBuf>,
+    pub perturb: PerturbationSpec,
+    /// Evaluate against the sequence's ground truth at the end (into summary.json).
+    pub eval: bool,
+    /// The command line, recorded in summary.json.
+    pub command: Vec<String>,
+}
+
+/// Runs a whole sequence and writes the run outputs. On a bad frame the outputs gathered so far
+/// are still written (with the error recorded) before the error is returned.
+pub fn run(opts: &RunOptions) -> Result<Summary> {
+    let wall = Instant::now();
+    let mut config = match &opts.config {
+        Some(p) => Config::load(p)?,
+        None => Config::default(),
+    };
+    let mut spec = opts.perturb.clone();
+    spec.mono |= config.sequence.mono;
+    config.sequence.mono = spec.mono;
+    let (camera, source) = resolve_camera(&config, opts.config.as_deref(), &opts.sequence)?;
+    tracing::info!("{}", describe_camera(&camera, &source));
+    let seq = TumSequence::open(
+        &opts.sequence,
+        camera.width,
+        camera.height,
+        camera.depth_scale,
+        config.sequence.max_association_dt,
+        spec.mono,
+    )?;
+    if seq.unassociated > 0 {
+        tracing::warn!(
+            "{} colour frames have no depth frame within {} s and are skipped",
+            seq.unassociated,
+            config.sequence.max_association_dt
+        );
+    }
+    let perturbed = PerturbedSequence::new(&seq, &spec)?;
+    let out = RunOutputs::create(&opts.out)?;
+
+    let mut timing = Timing::default();
+    let mut states: Vec<StateRow> = Vec::new();
+    let trajectory: Vec<StampedPose> = Vec::new();
+    let keyframes: Vec<(StampedPose, u32)> = Vec::new();
+    let closures: Vec<ClosureRow> = Vec::new();
+    let mut state = "Init".to_string();
+    let mut failure = None;
+    let n = perturbed.len();
+    let mut frames = perturbed.frames();
+    let mut delivered = 0usize;
+    loop {
+        let t0 = Instant::now();
+        let Some(frame) = frames.next() else { break };
+        timing.record("load", t0.elapsed().as_secs_f64() * 1e3);
+        let frame = match frame {
+            Ok(f) => f,
+            Err(e) => {
+                failure = Some(e);
+                break;
+            }
+        };
+        delivered += 1;
+        let transition = states.is_empty().then(|| Transition {
+            from: "(start)".into(),
+            trigger: "start".into(),
+        });
+        states.push(StateRow {
+            frame: frame.index,
+            t: frame.t,
+            state: state.clone(),
+            transition,
+            flags: Flags::default(),
+        });
+        if delivered % 100 == 0 {
+            tracing::info!("frame {delivered}/{n} state {state}");
+        }
+    }
+    // End of data (or a fatal input error): Interruptible → Final.
+    if let Some(last) = states.last() {
+        let (frame, t) = (last.frame, last.t);
+        let trigger = if failure.is_some() { "input_error" } else { "end_of_data" };
+        states.push(StateRow {
+            frame,
+            t,
+            state: "Final".into(),
+            transition: Some(Transition { from: state.clone(), trigger: trigger.into() }),
+            flags: Flags::default(),
+        });
+    }
+    state = "Final".into();
+
+    let evaluation = if opts.eval { evaluate(&seq, &trajectory, &spec)? } else { None };
+    let summary = Summary {
+        homing_version: env!("CARGO_PKG_VERSION"),
+        sequence: opts.sequence.clone(),
+        command: opts.command.clone(),
+        sequence_frames: seq.len(),
+        frames: delivered,
+        frames_with_pose: trajectory.len(),
+        keyframes: keyframes.len(),
+        maps: 0,
+        closures_accepted: closures.iter().filter(|c| c.verdict == "accepted").count(),
+        closures_rejected: closures.iter().filter(|c| c.verdict.starts_with("rejected")).count(),
+        final_state: state,
+        perturbations: perturbed.plan.clone(),
+        camera,
+        camera_source: source.to_string(),
+        config,
+        timing: timing.summary(),
+        wall_time_s: wall.elapsed().as_secs_f64(),
+        evaluation,
+        error: failure.as_ref().map(|e| e.to_string()),
+    };
+    out.write_trajectory(&trajectory)?;
+    out.write_keyframes(&keyframes)?;
+    out.write_states(&states)?;
+    out.write_closures(&closures)?;
+    out.write_summary(&summary)?;
+    match failure {
+        Some(e) => Err(e),
+        None => Ok(summary),
+    }
+}
+
+/// ATE/RPE against the sequence's ground truth, or a note why there is none.
+fn evaluate(
+    seq: &TumSequence,
+    est: &[StampedPose],
+    spec: &PerturbationSpec,
+) -> Result<Option<serde_json::Value>> {
+    let Some(gt) = seq.groundtruth()? else {
+        return Ok(Some(serde_json::json!({"note": "the sequence has no groundtruth.txt"})));
+    };
+    let align = if spec.mono { Alignment::Sim3 } else { Alignment::Se3 };
+    let stamps: Vec<f64> = seq.frames.iter().map(|f| f.t).collect();
+    let eligible = eval::eligible_stamps(&stamps, &gt, 0.02);
+    let coverage = eval::coverage(&eligible, est, 0.02);
+    if est.len() < 3 {
+        return Ok(Some(serde_json::json!({
+            "coverage": coverage,
+            "note": format!("{} poses: too few to align and evaluate", est.len()),
+        })));
+    }
+    let assoc = eval::associate_and_align(&gt, est, align, 0.02)?;
+    let ate = eval::ate(&assoc, align);
+    let rpe = eval::rpe(&assoc, 1.0, RpeUnit::Seconds, false).ok();
+    serde_json::to_value(serde_json::json!({"ate": ate, "rpe": rpe, "coverage": coverage}))
+        .map(Some)
+        .map_err(|e| Error::invalid(e.to_string()))
+}
+
