@@ -1,0 +1,80 @@
+//! Helpers shared by the integration tests: tiny TUM folders written on the spot.
+#![allow(dead_code)]
+
+use homing::io::tum::{DepthImage, StampedPose, save_depth, save_png, write_list, write_trajectory};
+use nalgebra::{Isometry3, Translation3, UnitQuaternion};
+use std::path::{Path, PathBuf};
+
+pub const W: u32 = 64;
+pub const H: u32 = 48;
+
+/// Writes a camera.toml for the tiny W×H test images.
+pub fn write_camera(dir: &Path) {
+    std::fs::write(
+        dir.join("camera.toml"),
+        format!(
+            "[camera]\nname = \"test\"\nfx = 50.0\nfy = 50.0\ncx = 32.0\ncy = 24.0\nwidth = {W}\nheight = {H}\n"
+        ),
+    )
+    .unwrap();
+}
+
+/// A valid n-frame TUM folder (30 Hz, depth stamps 5 ms late, ground truth at 100 Hz).
+pub fn tum_folder(root: &Path, name: &str, n: usize) -> PathBuf {
+    let dir = root.join(name);
+    std::fs::create_dir_all(dir.join("rgb")).unwrap();
+    std::fs::create_dir_all(dir.join("depth")).unwrap();
+    write_camera(&dir);
+    let (mut rgb, mut depth) = (Vec::new(), Vec::new());
+    for i in 0..n {
+        let t = 1000.0 + i as f64 / 30.0;
+        let img = image::RgbImage::from_fn(W, H, |x, y| image::Rgb([(x * 4) as u8, (y * 5) as u8, i as u8]));
+        let f = format!("rgb/{t:.6}.png");
+        save_png(&dir.join(&f), &image::DynamicImage::ImageRgb8(img)).unwrap();
+        rgb.push((t, f));
+        let mut d = DepthImage::new(W, H);
+        d.data.iter_mut().for_each(|v| *v = 1.5);
+        let td = t + 0.005;
+        let f = format!("depth/{td:.6}.png");
+        save_depth(&dir.join(&f), &d, 5000.0).unwrap();
+        depth.push((td, f));
+    }
+    write_list(&dir.join("rgb.txt"), &rgb, "colour images").unwrap();
+    write_list(&dir.join("depth.txt"), &depth, "depth images").unwrap();
+    let gt: Vec<StampedPose> = (0..(n as f64 / 30.0 * 100.0) as usize + 10)
+        .map(|k| {
+            let t = 1000.0 - 0.05 + k as f64 / 100.0;
+            StampedPose {
+                t,
+                pose: Isometry3::from_parts(
+                    Translation3::new(0.1 * t.sin(), 0.05 * k as f64 / 100.0, 0.0),
+                    UnitQuaternion::from_euler_angles(0.0, 0.01 * k as f64, 0.0),
+                ),
+            }
+        })
+        .collect();
+    write_trajectory(&dir.join("groundtruth.txt"), &gt, "test ground truth").unwrap();
+    dir
+}
+
+/// Runs the homing binary, returning (success, stdout, stderr).
+pub fn homing(args: &[&str]) -> (bool, String, String) {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_homing"))
+        .args(args)
+        .env("RUST_LOG", "warn")
+        .output()
+        .unwrap();
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+/// Asserts that an error message is clear: no panic, and it names `needle` (file and/or line).
+pub fn assert_clear_error(ok: bool, stderr: &str, needle: &str) {
+    assert!(!ok, "expected failure, stderr: {stderr}");
+    assert!(!stderr.contains("panicked"), "panicked: {stderr}");
+    assert!(stderr.contains("error:"), "no error line: {stderr}");
+    assert!(stderr.contains(needle), "error does not name '{needle}': {stderr}");
+}
