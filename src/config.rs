@@ -514,6 +514,12 @@ mod tests {
     }
 
     #[test]
+    fn shipped_default_toml_is_the_default() {
+        let text = include_str!("../configs/default.toml");
+        assert_eq!(Config::parse(text, Path::new("configs/default.toml")).unwrap(), Config::default());
+    }
+
+    #[test]
     fn defaults_round_trip() {
         let cfg = Config::default();
         let text = toml::to_string(&cfg).unwrap();

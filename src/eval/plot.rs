@@ -48,6 +48,20 @@ fn padded_range(v: impl Iterator<Item = f64> + Clone) -> std::ops::Range<f64> {
     (lo - pad)..(hi + pad)
 }
 
+/// Widens one of the ranges so that a metre is as long on both axes of a `aspect` (w/h) panel.
+fn equal_aspect(
+    x: std::ops::Range<f64>,
+    y: std::ops::Range<f64>,
+    aspect: f64,
+) -> (std::ops::Range<f64>, std::ops::Range<f64>) {
+    let (w, h) = (x.end - x.start, y.end - y.start);
+    let grow = |r: std::ops::Range<f64>, len: f64| {
+        let c = 0.5 * (r.start + r.end);
+        (c - 0.5 * len)..(c + 0.5 * len)
+    };
+    if w / h < aspect { (grow(x, h * aspect), y) } else { (x, grow(y, w / aspect)) }
+}
+
 /// Draws the evaluation plot. `gt` is the full ground truth (drawn as the reference path).
 pub fn plot_ate(
     path: &Path,
@@ -74,8 +88,11 @@ pub fn plot_ate(
         let est2: Vec<(f64, f64)> =
             assoc.estimate.iter().map(|p| proj(&p.translation.vector)).collect();
         let all = gt2.iter().chain(&est2);
-        let xr = padded_range(all.clone().map(|p| p.0));
-        let yr = padded_range(all.map(|p| p.1));
+        let (xr, yr) = equal_aspect(
+            padded_range(all.clone().map(|p| p.0)),
+            padded_range(all.map(|p| p.1)),
+            (W / 2 - 75) as f64 / (H - 110) as f64,
+        );
         let mut c = ChartBuilder::on(&left)
             .caption("top view (principal plane of the ground truth)", ("sans-serif", 16))
             .margin(10)

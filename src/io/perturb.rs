@@ -128,7 +128,7 @@ impl std::str::FromStr for FaultSpec {
             if let Some((a, b)) = part.split_once('-') {
                 let a: usize = a.trim().parse().map_err(|_| bad())?;
                 let b: usize = b.trim().parse().map_err(|_| bad())?;
-                if b < a || b - a > 10_000_000 {
+                if b < a || b - a > 1_000_000 {
                     return Err(bad());
                 }
                 frames.extend(a..=b);

@@ -66,9 +66,13 @@ fn check_increasing(path: &Path, prev: Option<(f64, usize)>, t: f64, line: usize
 
 /// Reads an image list (`rgb.txt`, `depth.txt`): `timestamp filename` per line.
 pub fn read_list(path: &Path) -> Result<Vec<ListEntry>> {
-    let text = read_text(path)?;
+    parse_list(&read_text(path)?, path)
+}
+
+/// Parses image-list text; `path` is only used in error messages.
+pub fn parse_list(text: &str, path: &Path) -> Result<Vec<ListEntry>> {
     let mut out: Vec<ListEntry> = Vec::new();
-    for (line, f) in data_lines(&text) {
+    for (line, f) in data_lines(text) {
         if f.len() != 2 {
             return Err(Error::parse(
                 path,
@@ -87,10 +91,14 @@ pub fn read_list(path: &Path) -> Result<Vec<ListEntry>> {
 /// Quaternions must have unit norm within 1e-3 (they are re-normalised); anything else is
 /// reported, because a non-normalised quaternion usually means swapped columns.
 pub fn read_trajectory(path: &Path) -> Result<Vec<StampedPose>> {
-    let text = read_text(path)?;
+    parse_trajectory(&read_text(path)?, path)
+}
+
+/// Parses TUM trajectory text; `path` is only used in error messages.
+pub fn parse_trajectory(text: &str, path: &Path) -> Result<Vec<StampedPose>> {
     let mut out: Vec<StampedPose> = Vec::new();
     let mut prev_line = 0;
-    for (line, f) in data_lines(&text) {
+    for (line, f) in data_lines(text) {
         if f.len() != 8 {
             return Err(Error::parse(
                 path,
@@ -393,10 +401,14 @@ impl FrameSource for TumSequence {
 
 /// Reads `associations.txt`: `t_rgb rgb_file t_depth depth_file`.
 fn read_associations(path: &Path) -> Result<Vec<(f64, String, f64, String)>> {
-    let text = read_text(path)?;
+    parse_associations(&read_text(path)?, path)
+}
+
+/// Parses `associations.txt` text; `path` is only used in error messages.
+pub fn parse_associations(text: &str, path: &Path) -> Result<Vec<(f64, String, f64, String)>> {
     let mut out: Vec<(f64, String, f64, String)> = Vec::new();
     let mut prev = None;
-    for (line, f) in data_lines(&text) {
+    for (line, f) in data_lines(text) {
         if f.len() != 4 {
             return Err(Error::parse(
                 path,
