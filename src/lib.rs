@@ -11,3 +11,4 @@ pub mod eval;
 pub mod geometry;
 pub mod output;
 pub mod system;
+pub mod optim;
