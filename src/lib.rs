@@ -12,3 +12,4 @@ pub mod geometry;
 pub mod output;
 pub mod system;
 pub mod optim;
+pub mod preprocess;

@@ -1,0 +1,85 @@
+//! ORB extraction: count, spread over the image, undistortion, depth lookup.
+
+use homing::config::{CameraConfig, OrbConfig};
+use homing::io::tum::{DepthImage, Frame};
+use homing::preprocess::{Preprocessor, hamming};
+use rand::{Rng, SeedableRng};
+
+/// A 640x480 image of random rectangles: corners everywhere, one very busy corner region.
+fn textured_frame(seed: u64) -> Frame {
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let mut img = image::RgbImage::from_pixel(640, 480, image::Rgb([128, 128, 128]));
+    for _ in 0..900 {
+        let (w, h) = (rng.random_range(4..40), rng.random_range(4..40));
+        let (x0, y0) = (rng.random_range(0..640 - w), rng.random_range(0..480 - h));
+        let v: u8 = rng.random();
+        for y in y0..y0 + h {
+            for x in x0..x0 + w {
+                img.put_pixel(x, y, image::Rgb([v, v, v]));
+            }
+        }
+    }
+    // A dense checkerboard in the top-left corner would take every feature without distribution.
+    for y in 0..120 {
+        for x in 0..160 {
+            let v = if (x / 4 + y / 4) % 2 == 0 { 0 } else { 255 };
+            img.put_pixel(x, y, image::Rgb([v, v, v]));
+        }
+    }
+    let mut depth = DepthImage::new(640, 480);
+    for (i, d) in depth.data.iter_mut().enumerate() {
+        *d = 1.0 + (i % 640) as f32 / 640.0;
+    }
+    Frame { index: 0, t: 0.0, rgb: img, depth: Some(depth) }
+}
+
+fn camera(distorted: bool) -> CameraConfig {
+    let mut c = homing::config::builtin_camera("freiburg1").unwrap();
+    if !distorted {
+        (c.k1, c.k2, c.p1, c.p2, c.k3) = (0.0, 0.0, 0.0, 0.0, 0.0);
+    }
+    c
+}
+
+#[test]
+fn orb_count_and_spread() {
+    let mut pre = Preprocessor::new(&camera(false), &OrbConfig::default()).unwrap();
+    let m = pre.process(&textured_frame(1)).unwrap();
+    assert!(m.len() >= 800 && m.len() <= 1000, "{} keypoints", m.len());
+    assert_eq!(m.descriptors.len(), m.len());
+    let mut cells = [0usize; 16];
+    for k in &m.keypoints {
+        cells[(k.un.y / 120.0) as usize * 4 + (k.un.x / 160.0) as usize] += 1;
+    }
+    // Every cell of a 4x4 grid has features, and the busy corner does not take them all.
+    assert!(cells.iter().all(|&c| c >= 15), "{cells:?}");
+    assert!(cells[0] < m.len() / 4, "{cells:?}");
+    assert!(m.keypoints.iter().any(|k| k.octave >= 4), "no features on coarse levels");
+    // Depth under each keypoint: the test depth ramps with x.
+    for (k, &d) in m.keypoints.iter().zip(&m.depth) {
+        let expect = 1.0 + k.raw.x.round() as f32 / 640.0;
+        assert!((d - expect).abs() < 1e-6);
+    }
+    // Deterministic.
+    let m2 = pre.process(&textured_frame(1)).unwrap();
+    assert_eq!(m.descriptors, m2.descriptors);
+    assert!(hamming(&m.descriptors[0], &m.descriptors[0]) == 0);
+}
+
+#[test]
+fn undistortion_moves_keypoints_as_the_model_says() {
+    let cam = camera(true);
+    let mut pre = Preprocessor::new(&cam, &OrbConfig::default()).unwrap();
+    let m = pre.process(&textured_frame(2)).unwrap();
+    // Re-distort each undistorted point with the radial-tangential model: must give the raw one.
+    for k in m.keypoints.iter().take(200) {
+        let x = (k.un.x - cam.cx) / cam.fx;
+        let y = (k.un.y - cam.cy) / cam.fy;
+        let r2 = x * x + y * y;
+        let radial = 1.0 + cam.k1 * r2 + cam.k2 * r2 * r2 + cam.k3 * r2 * r2 * r2;
+        let xd = x * radial + 2.0 * cam.p1 * x * y + cam.p2 * (r2 + 2.0 * x * x);
+        let yd = y * radial + cam.p1 * (r2 + 2.0 * y * y) + 2.0 * cam.p2 * x * y;
+        let (u, v) = (cam.fx * xd + cam.cx, cam.fy * yd + cam.cy);
+        assert!((u - k.raw.x).abs() < 0.05 && (v - k.raw.y).abs() < 0.05, "{u},{v} vs {:?}", k.raw);
+    }
+}
