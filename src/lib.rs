@@ -13,3 +13,4 @@ pub mod output;
 pub mod system;
 pub mod optim;
 pub mod preprocess;
+pub mod aligner;
