@@ -1,0 +1,847 @@
+//! Local bundle adjustment: Levenberg–Marquardt over keyframe poses and map points with a
+//! Schur complement on the points and a sparse Cholesky of the reduced camera system.
+//!
+//! Why this shape: in local BA there are a few tens of cameras and thousands of points, and
+//! each point's 3×3 block of the normal equations is independent of every other point's.
+//! Eliminating the points (Schur complement) leaves a `6·n_cams` square system whose 6×6
+//! blocks are non-zero only where two cameras see a common point. That system is assembled
+//! as a sparse matrix and factorised with faer's supernodal Cholesky; its *symbolic*
+//! factorisation depends only on the co-visibility pattern, so it is computed once per
+//! [`solve`] call and only the numeric factorisation is repeated each iteration. Points are
+//! then recovered by back-substitution, one 3×3 solve each.
+//!
+//! Damping is Nielsen's: `H + λI`, λ scaled by the gain ratio on success and by a growing
+//! factor on a rejected step. Fixed cameras and fixed points are constants, not variables.
+
+use std::collections::HashMap;
+
+use faer::Side;
+use faer::linalg::solvers::Solve;
+use faer::sparse::linalg::solvers::{Llt, SymbolicLlt};
+use faer::sparse::{SparseColMatRef, SymbolicSparseColMat};
+use nalgebra::{Isometry3, Matrix3, Matrix6, Matrix6x3, Vector3, Vector6};
+use thiserror::Error;
+
+use super::reprojection::{Intrinsics, Observation, huber};
+use super::se3;
+
+/// A keyframe pose in the problem (world-to-camera).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BaCamera {
+    pub pose_cw: Isometry3<f64>,
+    /// Fixed cameras (e.g. the covisible keyframes at the boundary of the local window) are
+    /// constants that anchor the gauge.
+    pub fixed: bool,
+}
+
+/// A map point in the problem.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BaPoint {
+    pub position_w: Vector3<f64>,
+    pub fixed: bool,
+}
+
+/// Observation of `point` in `camera` (indices into the problem's vectors).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BaObservation {
+    pub camera: usize,
+    pub point: usize,
+    pub obs: Observation,
+    /// Isotropic information 1/σ² (see [`super::reprojection::octave_information`]).
+    pub info: f64,
+}
+
+/// A bundle-adjustment problem; [`solve`] updates poses and points in place.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BaProblem {
+    pub keyframes: Vec<BaCamera>,
+    pub points: Vec<BaPoint>,
+    pub observations: Vec<BaObservation>,
+    pub intrinsics: Intrinsics,
+}
+
+/// Solver settings.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BaParams {
+    /// Maximum LM iterations (linearisations). ORB-SLAM's local BA runs 5 + 10.
+    pub iterations: usize,
+    /// Use the Huber kernel (δ² = the observation's χ² threshold) — ORB-SLAM does.
+    pub huber: bool,
+    /// Initial λ = `tau · max diag(H)` (g2o uses 1e-5).
+    pub tau: f64,
+    /// Damping increases tried within one iteration before giving up.
+    pub max_rejections: usize,
+    /// Stop when an accepted step lowers the cost by less than this fraction.
+    pub relative_tolerance: f64,
+}
+
+impl Default for BaParams {
+    fn default() -> Self {
+        Self {
+            iterations: 10,
+            huber: true,
+            tau: 1e-5,
+            max_rejections: 10,
+            relative_tolerance: 1e-10,
+        }
+    }
+}
+
+/// Why the solver stopped.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Termination {
+    /// Ran the requested number of iterations.
+    MaxIterations,
+    /// The cost decrease fell below `relative_tolerance` or the gradient vanished.
+    Converged,
+    /// No damping produced a cost decrease (local minimum or numerical trouble).
+    NoProgress,
+    /// There was nothing to optimise (no free variable with a valid observation).
+    NothingToOptimize,
+}
+
+/// Outcome of [`solve`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct BaReport {
+    /// Sum of plain χ² (`info·|r|²`) over the observations valid at the start.
+    pub initial_chi2: f64,
+    /// Same sum over the observations valid at the end.
+    pub final_chi2: f64,
+    /// Optimised objective (robust if `huber`) at the start and the end.
+    pub initial_cost: f64,
+    pub final_cost: f64,
+    /// Objective after each iteration (length = `iterations`).
+    pub cost_per_iteration: Vec<f64>,
+    pub iterations: usize,
+    /// Indices of observations whose χ² exceeds their threshold after the solve, or whose
+    /// point ended up behind the camera — candidates for removal by the map merger.
+    pub outliers: Vec<usize>,
+    /// The camera held fixed to remove the gauge freedom when none was marked fixed.
+    pub gauge_fixed_camera: Option<usize>,
+    pub termination: Termination,
+}
+
+/// Inputs [`solve`] refuses rather than panicking on.
+#[derive(Debug, Error, PartialEq)]
+pub enum BaError {
+    #[error("observation {observation} refers to camera {camera}, but there are {n} cameras")]
+    CameraOutOfRange {
+        observation: usize,
+        camera: usize,
+        n: usize,
+    },
+    #[error("observation {observation} refers to point {point}, but there are {n} points")]
+    PointOutOfRange {
+        observation: usize,
+        point: usize,
+        n: usize,
+    },
+    #[error("observation {0} has a non-positive or non-finite information weight")]
+    BadInformation(usize),
+    #[error("camera {0} has a non-finite pose")]
+    NonFinitePose(usize),
+    #[error("point {0} has a non-finite position")]
+    NonFinitePoint(usize),
+    #[error("sparse symbolic factorisation failed: {0}")]
+    Symbolic(String),
+}
+
+/// Index structure of the problem, built once per [`solve`].
+struct Structure {
+    /// Free-variable index of each camera / point (`None` = fixed).
+    cam_var: Vec<Option<usize>>,
+    point_var: Vec<Option<usize>>,
+    n_cam: usize,
+    n_point: usize,
+    /// Observations of each free point, CSR style: `point_obs[point_obs_start[p]..[p+1]]`.
+    point_obs_start: Vec<usize>,
+    point_obs: Vec<usize>,
+    /// Per free point, the Schur block updates: `(i, j, block)` where `i`, `j` index that
+    /// point's observations (within `point_obs`) with free cameras `ci ≤ cj`.
+    pair_start: Vec<usize>,
+    pairs: Vec<(u32, u32, u32)>,
+    /// Block `(row cam, col cam)` of the upper triangle of the reduced system.
+    blocks: Vec<(usize, usize)>,
+    /// Index of the diagonal block of each free camera.
+    diag_block: Vec<usize>,
+    /// For each block and each of its 6 columns, the offset in the CSC values of its first
+    /// row (rows are contiguous within a block column).
+    block_offsets: Vec<[usize; 6]>,
+    symbolic: Option<(SymbolicSparseColMat<usize>, SymbolicLlt<usize>)>,
+    n_values: usize,
+}
+
+impl Structure {
+    fn build(problem: &BaProblem, fixed_cam: &[bool]) -> Result<Self, BaError> {
+        let mut cam_var = vec![None; problem.keyframes.len()];
+        let mut n_cam = 0;
+        for (c, v) in cam_var.iter_mut().enumerate() {
+            if !fixed_cam[c] {
+                *v = Some(n_cam);
+                n_cam += 1;
+            }
+        }
+        let mut point_var = vec![None; problem.points.len()];
+        let mut n_point = 0;
+        for (p, v) in point_var.iter_mut().enumerate() {
+            if !problem.points[p].fixed {
+                *v = Some(n_point);
+                n_point += 1;
+            }
+        }
+        // Observations grouped by free point (counting sort).
+        let mut counts = vec![0usize; n_point + 1];
+        for o in &problem.observations {
+            if let Some(p) = point_var[o.point] {
+                counts[p + 1] += 1;
+            }
+        }
+        for p in 0..n_point {
+            counts[p + 1] += counts[p];
+        }
+        let point_obs_start = counts.clone();
+        let mut point_obs = vec![0; counts[n_point]];
+        let mut fill = counts;
+        for (k, o) in problem.observations.iter().enumerate() {
+            if let Some(p) = point_var[o.point] {
+                point_obs[fill[p]] = k;
+                fill[p] += 1;
+            }
+        }
+
+        // Block pattern of the reduced camera system (upper triangle, ci ≤ cj).
+        let mut block_index: HashMap<(usize, usize), usize> = HashMap::new();
+        let mut blocks = Vec::new();
+        let mut diag_block = Vec::with_capacity(n_cam);
+        for c in 0..n_cam {
+            diag_block.push(blocks.len());
+            block_index.insert((c, c), blocks.len());
+            blocks.push((c, c));
+        }
+        let mut pair_start = Vec::with_capacity(n_point + 1);
+        let mut pairs = Vec::new();
+        for p in 0..n_point {
+            pair_start.push(pairs.len());
+            let obs = &point_obs[point_obs_start[p]..point_obs_start[p + 1]];
+            for (i, &oi) in obs.iter().enumerate() {
+                let Some(ci) = cam_var[problem.observations[oi].camera] else {
+                    continue;
+                };
+                for (j, &oj) in obs.iter().enumerate() {
+                    let Some(cj) = cam_var[problem.observations[oj].camera] else {
+                        continue;
+                    };
+                    if ci > cj {
+                        continue;
+                    }
+                    let next = blocks.len();
+                    let b = *block_index.entry((ci, cj)).or_insert(next);
+                    if b == next {
+                        blocks.push((ci, cj));
+                    }
+                    pairs.push((i as u32, j as u32, b as u32));
+                }
+            }
+        }
+        pair_start.push(pairs.len());
+
+        // CSC layout of the upper triangle: block column cj holds its row blocks in
+        // increasing ci; within a block column every scalar column has the same rows,
+        // except that the diagonal block is cut at the diagonal.
+        let mut by_col: Vec<Vec<usize>> = vec![Vec::new(); n_cam];
+        for (b, &(ci, cj)) in blocks.iter().enumerate() {
+            let _ = ci;
+            by_col[cj].push(b);
+        }
+        let n = 6 * n_cam;
+        let mut col_ptr = Vec::with_capacity(n + 1);
+        let mut row_idx = Vec::new();
+        let mut block_offsets = vec![[0usize; 6]; blocks.len()];
+        col_ptr.push(0);
+        for (cj, col_blocks) in by_col.iter_mut().enumerate() {
+            col_blocks.sort_by_key(|&b| blocks[b].0);
+            for c in 0..6 {
+                for &b in col_blocks.iter() {
+                    let ci = blocks[b].0;
+                    block_offsets[b][c] = row_idx.len();
+                    let rows = if ci == cj { c + 1 } else { 6 };
+                    row_idx.extend((0..rows).map(|r| 6 * ci + r));
+                }
+                col_ptr.push(row_idx.len());
+            }
+        }
+        let n_values = row_idx.len();
+        let symbolic = if n_cam > 0 {
+            let sym = SymbolicSparseColMat::new_checked(n, n, col_ptr, None, row_idx);
+            let llt = SymbolicLlt::try_new(sym.as_ref(), Side::Upper)
+                .map_err(|e| BaError::Symbolic(format!("{e:?}")))?;
+            Some((sym, llt))
+        } else {
+            None
+        };
+        Ok(Self {
+            cam_var,
+            point_var,
+            n_cam,
+            n_point,
+            point_obs_start,
+            point_obs,
+            pair_start,
+            pairs,
+            blocks,
+            diag_block,
+            block_offsets,
+            symbolic,
+            n_values,
+        })
+    }
+}
+
+/// One observation linearised at the current estimate.
+#[derive(Clone, Copy)]
+struct ObsLin {
+    /// `w = info · ρ'(χ²)`; zero for invalid observations.
+    w: f64,
+    residual: Vector3<f64>,
+    jac_pose: nalgebra::Matrix3x6<f64>,
+    jac_point: Matrix3<f64>,
+}
+
+/// The (undamped) normal equations `H δ = −b` in block form.
+struct NormalEquations {
+    h_cc: Vec<Matrix6<f64>>,
+    b_c: Vec<Vector6<f64>>,
+    h_pp: Vec<Matrix3<f64>>,
+    b_p: Vec<Vector3<f64>>,
+    /// Camera–point block per observation (zero unless both are free).
+    h_cp: Vec<Matrix6x3<f64>>,
+}
+
+/// Current estimate of every camera and point (fixed ones included, unchanged).
+#[derive(Clone)]
+struct State {
+    poses: Vec<Isometry3<f64>>,
+    points: Vec<Vector3<f64>>,
+}
+
+/// χ² of observation `o` in `state`, `None` when it cannot be evaluated.
+fn obs_chi2(problem: &BaProblem, state: &State, o: &BaObservation) -> Option<f64> {
+    let r = o.obs.residual(
+        &problem.intrinsics,
+        &state.poses[o.camera],
+        &state.points[o.point],
+    )?;
+    Some(o.info * r.norm_squared())
+}
+
+fn robust_cost(chi2: f64, o: &BaObservation, use_huber: bool) -> f64 {
+    if use_huber {
+        huber(chi2, o.obs.chi2_threshold()).0
+    } else {
+        chi2
+    }
+}
+
+/// Objective over the observations in `mask`; `None` if one of them became invalid.
+fn evaluate(problem: &BaProblem, state: &State, mask: &[bool], use_huber: bool) -> Option<f64> {
+    let mut total = 0.0;
+    for (o, _) in problem.observations.iter().zip(mask).filter(|(_, m)| **m) {
+        total += robust_cost(obs_chi2(problem, state, o)?, o, use_huber);
+    }
+    Some(total)
+}
+
+/// Validity mask, objective and plain χ² sum at `state`.
+fn evaluate_all(problem: &BaProblem, state: &State, use_huber: bool) -> (Vec<bool>, f64, f64) {
+    let mut cost = 0.0;
+    let mut chi2_sum = 0.0;
+    let mask = problem
+        .observations
+        .iter()
+        .map(|o| match obs_chi2(problem, state, o) {
+            Some(c) => {
+                cost += robust_cost(c, o, use_huber);
+                chi2_sum += c;
+                true
+            }
+            None => false,
+        })
+        .collect();
+    (mask, cost, chi2_sum)
+}
+
+fn linearize(
+    problem: &BaProblem,
+    st: &Structure,
+    state: &State,
+    use_huber: bool,
+) -> (NormalEquations, f64) {
+    let mut ne = NormalEquations {
+        h_cc: vec![Matrix6::zeros(); st.n_cam],
+        b_c: vec![Vector6::zeros(); st.n_cam],
+        h_pp: vec![Matrix3::zeros(); st.n_point],
+        b_p: vec![Vector3::zeros(); st.n_point],
+        h_cp: vec![Matrix6x3::zeros(); problem.observations.len()],
+    };
+    for (k, o) in problem.observations.iter().enumerate() {
+        let cv = st.cam_var[o.camera];
+        let pv = st.point_var[o.point];
+        if cv.is_none() && pv.is_none() {
+            continue;
+        }
+        let Some(lin) = o.obs.linearize(
+            &problem.intrinsics,
+            &state.poses[o.camera],
+            &state.points[o.point],
+        ) else {
+            continue;
+        };
+        let chi2 = o.info * lin.residual.norm_squared();
+        let w = if use_huber {
+            o.info * huber(chi2, o.obs.chi2_threshold()).1
+        } else {
+            o.info
+        };
+        let l = ObsLin {
+            w,
+            residual: lin.residual,
+            jac_pose: lin.jac_pose,
+            jac_point: lin.jac_point,
+        };
+        let wjp = l.jac_point * l.w;
+        if let Some(c) = cv {
+            let jct = l.jac_pose.transpose();
+            ne.h_cc[c] += jct * l.jac_pose * l.w;
+            ne.b_c[c] += jct * l.residual * l.w;
+            if pv.is_some() {
+                ne.h_cp[k] = jct * wjp;
+            }
+        }
+        if let Some(p) = pv {
+            let jpt = l.jac_point.transpose();
+            ne.h_pp[p] += jpt * wjp;
+            ne.b_p[p] += jpt * l.residual * l.w;
+        }
+    }
+    let max_diag = ne
+        .h_cc
+        .iter()
+        .map(|h| h.diagonal().max())
+        .chain(ne.h_pp.iter().map(|h| h.diagonal().max()))
+        .fold(0.0f64, f64::max);
+    (ne, max_diag)
+}
+
+/// Solves `(H + λI) δ = −b` by the Schur complement on the points and faer's sparse
+/// Cholesky on the reduced camera system. `None` if a damped block is not positive
+/// definite (the caller then raises λ).
+fn schur_step(
+    problem: &BaProblem,
+    st: &Structure,
+    ne: &NormalEquations,
+    lambda: f64,
+) -> Option<(Vec<Vector6<f64>>, Vec<Vector3<f64>>)> {
+    let damp3 = Matrix3::identity() * lambda;
+    let mut h_pp_inv = Vec::with_capacity(st.n_point);
+    for h in &ne.h_pp {
+        h_pp_inv.push((h + damp3).cholesky()?.inverse());
+    }
+    let mut dx_c = vec![Vector6::zeros(); st.n_cam];
+    if let Some((sym, llt_sym)) = &st.symbolic {
+        let mut blocks = vec![Matrix6::zeros(); st.blocks.len()];
+        let mut rhs: Vec<f64> = Vec::with_capacity(6 * st.n_cam);
+        for c in 0..st.n_cam {
+            blocks[st.diag_block[c]] = ne.h_cc[c] + Matrix6::identity() * lambda;
+        }
+        let mut rhs_c: Vec<Vector6<f64>> = ne.b_c.iter().map(|b| -b).collect();
+        let mut y: Vec<Matrix6x3<f64>> = Vec::new();
+        for p in 0..st.n_point {
+            let obs = &st.point_obs[st.point_obs_start[p]..st.point_obs_start[p + 1]];
+            y.clear();
+            for &k in obs {
+                // Y_i = H_cp · H_pp⁻¹ (zero when the camera is fixed).
+                let yk = ne.h_cp[k] * h_pp_inv[p];
+                if let Some(c) = st.cam_var[problem.observations[k].camera] {
+                    rhs_c[c] += yk * ne.b_p[p];
+                }
+                y.push(yk);
+            }
+            for &(i, j, b) in &st.pairs[st.pair_start[p]..st.pair_start[p + 1]] {
+                blocks[b as usize] -= y[i as usize] * ne.h_cp[obs[j as usize]].transpose();
+            }
+        }
+        let mut values = vec![0.0; st.n_values];
+        for (b, &(ci, cj)) in st.blocks.iter().enumerate() {
+            let m = &blocks[b];
+            for c in 0..6 {
+                let rows = if ci == cj { c + 1 } else { 6 };
+                let off = st.block_offsets[b][c];
+                for r in 0..rows {
+                    values[off + r] = m[(r, c)];
+                }
+            }
+        }
+        let mat = SparseColMatRef::new(sym.as_ref(), &values);
+        let llt = Llt::try_new_with_symbolic(llt_sym.clone(), mat, Side::Upper).ok()?;
+        for r in &rhs_c {
+            rhs.extend(r.iter());
+        }
+        let n = rhs.len();
+        let mut x = faer::MatMut::from_column_major_slice_mut(&mut rhs, n, 1);
+        llt.solve_in_place(x.as_mut());
+        for (c, d) in dx_c.iter_mut().enumerate() {
+            *d = Vector6::from_column_slice(&rhs[6 * c..6 * c + 6]);
+        }
+    }
+    // Back-substitution: δp = H_pp⁻¹ (−b_p − Σ H_cpᵀ δc).
+    let mut dx_p = Vec::with_capacity(st.n_point);
+    for p in 0..st.n_point {
+        let mut r = -ne.b_p[p];
+        for &k in &st.point_obs[st.point_obs_start[p]..st.point_obs_start[p + 1]] {
+            if let Some(c) = st.cam_var[problem.observations[k].camera] {
+                r -= ne.h_cp[k].transpose() * dx_c[c];
+            }
+        }
+        dx_p.push(h_pp_inv[p] * r);
+    }
+    let finite = dx_c.iter().all(|d| d.iter().all(|x| x.is_finite()))
+        && dx_p.iter().all(|d| d.iter().all(|x| x.is_finite()));
+    finite.then_some((dx_c, dx_p))
+}
+
+fn apply_step(
+    st: &Structure,
+    state: &State,
+    dx_c: &[Vector6<f64>],
+    dx_p: &[Vector3<f64>],
+) -> State {
+    let mut next = state.clone();
+    for (c, v) in st.cam_var.iter().enumerate() {
+        if let Some(v) = v {
+            next.poses[c] = se3::retract(&state.poses[c], &dx_c[*v]);
+        }
+    }
+    for (p, v) in st.point_var.iter().enumerate() {
+        if let Some(v) = v {
+            next.points[p] += dx_p[*v];
+        }
+    }
+    next
+}
+
+fn validate(problem: &BaProblem) -> Result<(), BaError> {
+    for (c, k) in problem.keyframes.iter().enumerate() {
+        let ok = k.pose_cw.translation.vector.iter().all(|x| x.is_finite())
+            && k.pose_cw.rotation.coords.iter().all(|x| x.is_finite());
+        if !ok {
+            return Err(BaError::NonFinitePose(c));
+        }
+    }
+    for (p, pt) in problem.points.iter().enumerate() {
+        if !pt.position_w.iter().all(|x| x.is_finite()) {
+            return Err(BaError::NonFinitePoint(p));
+        }
+    }
+    for (k, o) in problem.observations.iter().enumerate() {
+        if o.camera >= problem.keyframes.len() {
+            return Err(BaError::CameraOutOfRange {
+                observation: k,
+                camera: o.camera,
+                n: problem.keyframes.len(),
+            });
+        }
+        if o.point >= problem.points.len() {
+            return Err(BaError::PointOutOfRange {
+                observation: k,
+                point: o.point,
+                n: problem.points.len(),
+            });
+        }
+        if !(o.info > 0.0 && o.info.is_finite()) {
+            return Err(BaError::BadInformation(k));
+        }
+    }
+    Ok(())
+}
+
+/// Cameras held fixed: the user's flags, plus the first camera if none is fixed (the
+/// reprojection error is invariant to a global rigid motion, so without an anchor the
+/// normal equations are singular up to damping and the solution drifts).
+fn fixed_cameras(problem: &BaProblem) -> (Vec<bool>, Option<usize>) {
+    let mut fixed: Vec<bool> = problem.keyframes.iter().map(|k| k.fixed).collect();
+    let mut gauge = None;
+    if !fixed.iter().any(|f| *f) && !fixed.is_empty() {
+        fixed[0] = true;
+        gauge = Some(0);
+    }
+    (fixed, gauge)
+}
+
+/// Runs Levenberg–Marquardt bundle adjustment, updating the problem's free poses and points.
+pub fn solve(problem: &mut BaProblem, params: &BaParams) -> Result<BaReport, BaError> {
+    validate(problem)?;
+    let (fixed_cam, gauge_fixed_camera) = fixed_cameras(problem);
+    let st = Structure::build(problem, &fixed_cam)?;
+    let mut state = State {
+        poses: problem.keyframes.iter().map(|k| k.pose_cw).collect(),
+        points: problem.points.iter().map(|p| p.position_w).collect(),
+    };
+    let use_huber = params.huber;
+    let (mut mask, initial_cost, initial_chi2) = evaluate_all(problem, &state, use_huber);
+    let mut cost = initial_cost;
+    let mut cost_per_iteration = Vec::with_capacity(params.iterations);
+    let mut lambda: Option<f64> = None;
+    let mut nu = 2.0;
+    let mut termination = Termination::MaxIterations;
+    let has_variables = st.n_cam + st.n_point > 0 && mask.iter().any(|m| *m);
+    if !has_variables {
+        termination = Termination::NothingToOptimize;
+    }
+    let mut iterations = 0;
+    while has_variables && iterations < params.iterations {
+        iterations += 1;
+        let (ne, max_diag) = linearize(problem, &st, &state, use_huber);
+        let grad_inf = ne
+            .b_c
+            .iter()
+            .flat_map(|b| b.iter())
+            .chain(ne.b_p.iter().flat_map(|b| b.iter()))
+            .fold(0.0f64, |m, x| m.max(x.abs()));
+        if grad_inf < 1e-12 {
+            cost_per_iteration.push(cost);
+            termination = Termination::Converged;
+            break;
+        }
+        let mut lam = *lambda.get_or_insert_with(|| params.tau * max_diag.max(1e-12));
+        let mut accepted = false;
+        for _ in 0..params.max_rejections.max(1) {
+            let trial = schur_step(problem, &st, &ne, lam).and_then(|(dc, dp)| {
+                let next = apply_step(&st, &state, &dc, &dp);
+                let c = evaluate(problem, &next, &mask, use_huber)?;
+                // Predicted decrease of the quadratic model: δᵀ(λδ − b).
+                let predicted: f64 = dc
+                    .iter()
+                    .zip(&ne.b_c)
+                    .map(|(d, b)| d.dot(&(d * lam - b)))
+                    .chain(dp.iter().zip(&ne.b_p).map(|(d, b)| d.dot(&(d * lam - b))))
+                    .sum();
+                Some((next, c, predicted))
+            });
+            match trial {
+                Some((next, c, predicted)) if c < cost => {
+                    let rho = (cost - c) / predicted.max(f64::MIN_POSITIVE);
+                    lam *= (1.0 - (2.0 * rho - 1.0).powi(3)).max(1.0 / 3.0);
+                    nu = 2.0;
+                    let decrease = (cost - c) / cost.max(f64::MIN_POSITIVE);
+                    state = next;
+                    // Re-evaluate on the new state: observations may have become valid.
+                    let (m, new_cost, _) = evaluate_all(problem, &state, use_huber);
+                    mask = m;
+                    cost = new_cost;
+                    accepted = true;
+                    if decrease < params.relative_tolerance {
+                        termination = Termination::Converged;
+                    }
+                    break;
+                }
+                _ => {
+                    lam *= nu;
+                    nu *= 2.0;
+                }
+            }
+        }
+        lambda = Some(lam);
+        cost_per_iteration.push(cost);
+        if !accepted {
+            termination = Termination::NoProgress;
+            break;
+        }
+        if termination == Termination::Converged {
+            break;
+        }
+    }
+
+    for (k, pose) in problem.keyframes.iter_mut().zip(&state.poses) {
+        k.pose_cw = *pose;
+    }
+    for (p, pos) in problem.points.iter_mut().zip(&state.points) {
+        p.position_w = *pos;
+    }
+    let (_, final_cost, final_chi2) = evaluate_all(problem, &state, use_huber);
+    let outliers = problem
+        .observations
+        .iter()
+        .enumerate()
+        .filter(|(_, o)| match obs_chi2(problem, &state, o) {
+            Some(c) => c > o.obs.chi2_threshold(),
+            None => true,
+        })
+        .map(|(k, _)| k)
+        .collect();
+    Ok(BaReport {
+        initial_chi2,
+        final_chi2,
+        initial_cost,
+        final_cost,
+        cost_per_iteration,
+        iterations,
+        outliers,
+        gauge_fixed_camera,
+        termination,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{DMatrix, DVector, Point3, Vector2};
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    const INTR: Intrinsics = Intrinsics {
+        fx: 517.3,
+        fy: 516.5,
+        cx: 318.6,
+        cy: 255.3,
+        bf: 40.0,
+    };
+
+    /// Small perturbed scene: 5 cameras (camera 0 fixed), 30 points (two fixed), every
+    /// camera sees every point, observations alternate mono / RGB-D.
+    fn small_problem(seed: u64) -> BaProblem {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let keyframes: Vec<BaCamera> = (0..5)
+            .map(|i| {
+                let pose_wc = Isometry3::new(
+                    Vector3::new(0.2 * i as f64, 0.05 * i as f64, 0.0),
+                    Vector3::new(0.0, 0.03 * i as f64, 0.0),
+                );
+                BaCamera {
+                    pose_cw: pose_wc.inverse(),
+                    fixed: i == 0,
+                }
+            })
+            .collect();
+        let points: Vec<BaPoint> = (0..30)
+            .map(|i| BaPoint {
+                position_w: Vector3::new(
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(3.0..5.0),
+                ),
+                fixed: i < 2,
+            })
+            .collect();
+        let mut observations = Vec::new();
+        for (c, k) in keyframes.iter().enumerate() {
+            for (p, pt) in points.iter().enumerate() {
+                let pc = (k.pose_cw * Point3::from(pt.position_w)).coords;
+                let uv = INTR.project(&pc).unwrap()
+                    + Vector2::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0));
+                let obs = if (c + p) % 2 == 0 {
+                    Observation::Mono { uv }
+                } else {
+                    Observation::Rgbd { uv, depth: pc.z }
+                };
+                observations.push(BaObservation {
+                    camera: c,
+                    point: p,
+                    obs,
+                    info: 1.0 / (1.0 + (p % 3) as f64),
+                });
+            }
+        }
+        let mut problem = BaProblem {
+            keyframes,
+            points,
+            observations,
+            intrinsics: INTR,
+        };
+        for k in problem.keyframes.iter_mut().filter(|k| !k.fixed) {
+            let d = Vector6::from_fn(|_, _| rng.random_range(-0.03..0.03));
+            k.pose_cw = se3::retract(&k.pose_cw, &d);
+        }
+        for p in problem.points.iter_mut().filter(|p| !p.fixed) {
+            p.position_w += Vector3::from_fn(|_, _| rng.random_range(-0.05..0.05));
+        }
+        problem
+    }
+
+    /// Full normal equations `(H + λI) δ = −b` assembled densely and solved by Cholesky.
+    fn dense_step(
+        problem: &BaProblem,
+        st: &Structure,
+        ne: &NormalEquations,
+        lambda: f64,
+    ) -> DVector<f64> {
+        let n = 6 * st.n_cam + 3 * st.n_point;
+        let mut h = DMatrix::<f64>::identity(n, n) * lambda;
+        let mut b = DVector::<f64>::zeros(n);
+        for c in 0..st.n_cam {
+            h.view_mut((6 * c, 6 * c), (6, 6)).add_assign(&ne.h_cc[c]);
+            b.rows_mut(6 * c, 6).copy_from(&ne.b_c[c]);
+        }
+        let po = 6 * st.n_cam;
+        for p in 0..st.n_point {
+            h.view_mut((po + 3 * p, po + 3 * p), (3, 3)).add_assign(&ne.h_pp[p]);
+            b.rows_mut(po + 3 * p, 3).copy_from(&ne.b_p[p]);
+        }
+        for (k, o) in problem.observations.iter().enumerate() {
+            if let (Some(c), Some(p)) = (st.cam_var[o.camera], st.point_var[o.point]) {
+                h.view_mut((6 * c, po + 3 * p), (6, 3)).add_assign(&ne.h_cp[k]);
+                h.view_mut((po + 3 * p, 6 * c), (3, 6)).add_assign(&ne.h_cp[k].transpose());
+            }
+        }
+        h.cholesky().expect("damped H is positive definite").solve(&(-b))
+    }
+
+    use std::ops::AddAssign;
+
+    #[test]
+    fn schur_step_equals_dense_solve() {
+        for seed in 0..3 {
+            let problem = small_problem(seed);
+            let (fixed, _) = fixed_cameras(&problem);
+            let st = Structure::build(&problem, &fixed).unwrap();
+            let state = State {
+                poses: problem.keyframes.iter().map(|k| k.pose_cw).collect(),
+                points: problem.points.iter().map(|p| p.position_w).collect(),
+            };
+            let (ne, max_diag) = linearize(&problem, &st, &state, true);
+            for lambda in [1e-6 * max_diag, 1e-2 * max_diag, 1e-9] {
+                let (dc, dp) = schur_step(&problem, &st, &ne, lambda).unwrap();
+                let dense = dense_step(&problem, &st, &ne, lambda);
+                let mut schur = DVector::<f64>::zeros(dense.len());
+                for (c, d) in dc.iter().enumerate() {
+                    schur.rows_mut(6 * c, 6).copy_from(d);
+                }
+                for (p, d) in dp.iter().enumerate() {
+                    schur.rows_mut(6 * st.n_cam + 3 * p, 3).copy_from(d);
+                }
+                let err = (&schur - &dense).norm() / dense.norm();
+                assert!(err < 1e-8, "seed {seed} λ {lambda}: relative difference {err}");
+            }
+        }
+    }
+
+    #[test]
+    fn gauge_is_fixed_when_no_camera_is() {
+        let mut problem = small_problem(5);
+        problem.keyframes[0].fixed = false;
+        let before = problem.keyframes[0].pose_cw;
+        let report = solve(&mut problem, &BaParams::default()).unwrap();
+        assert_eq!(report.gauge_fixed_camera, Some(0));
+        assert_eq!(problem.keyframes[0].pose_cw, before);
+        assert!(report.final_cost < report.initial_cost);
+    }
+
+    #[test]
+    fn bad_indices_are_errors() {
+        let mut problem = small_problem(6);
+        problem.observations[3].point = 1000;
+        assert!(matches!(
+            solve(&mut problem, &BaParams::default()),
+            Err(BaError::PointOutOfRange { observation: 3, .. })
+        ));
+    }
+}
