@@ -13,26 +13,11 @@ use opencv::core::{Mat, Point2d, Point3d, Vector};
 use opencv::prelude::*;
 use rand::{Rng, SeedableRng};
 
-/// Pinhole intrinsics of undistorted pixels.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Intrinsics {
-    pub fx: f64,
-    pub fy: f64,
-    pub cx: f64,
-    pub cy: f64,
-}
+pub use crate::optim::Intrinsics;
 
-impl Intrinsics {
-    pub fn project(&self, p: &Vector3<f64>) -> Vector2<f64> {
-        Vector2::new(self.fx * p.x / p.z + self.cx, self.fy * p.y / p.z + self.cy)
-    }
-    pub fn backproject(&self, uv: &Vector2<f64>, depth: f64) -> Vector3<f64> {
-        Vector3::new(
-            (uv.x - self.cx) / self.fx * depth,
-            (uv.y - self.cy) / self.fy * depth,
-            depth,
-        )
-    }
+/// Back-projects an undistorted pixel with a depth (metres) into camera coordinates.
+pub fn backproject(k: &Intrinsics, uv: &Vector2<f64>, depth: f64) -> Vector3<f64> {
+    Vector3::new((uv.x - k.cx) / k.fx * depth, (uv.y - k.cy) / k.fy * depth, depth)
 }
 
 /// Result of an alignment: world-to-camera pose (PnP) or source-to-target transform (3D-3D).
@@ -97,11 +82,8 @@ pub fn pnp_ransac(
     let mut sse = 0.0;
     let mut n = 0;
     for (i, (p, u)) in points_w.iter().zip(uv).enumerate() {
-        let pc = pose * Point3::from(*p);
-        if pc.z <= 0.0 {
-            continue;
-        }
-        let e = (k.project(&pc.coords) - u).norm();
+        let Some(proj) = k.project(&(pose * Point3::from(*p)).coords) else { continue };
+        let e = (proj - u).norm();
         if e <= threshold_px {
             inliers[i] = true;
             sse += e * e;
@@ -190,7 +172,7 @@ mod tests {
 
     #[test]
     fn pnp_recovers_pose_with_outliers() {
-        let k = Intrinsics { fx: 500.0, fy: 500.0, cx: 320.0, cy: 240.0 };
+        let k = Intrinsics { fx: 500.0, fy: 500.0, cx: 320.0, cy: 240.0, bf: 40.0 };
         let truth = Isometry3::new(Vector3::new(0.1, -0.2, 0.3), Vector3::new(0.05, -0.1, 0.02));
         let pts = scene(200, 1);
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(2);
@@ -202,7 +184,7 @@ mod tests {
                 if i % 4 == 0 {
                     Vector2::new(rng.random_range(0.0..640.0), rng.random_range(0.0..480.0))
                 } else {
-                    k.project(&pc.coords) + Vector2::new(rng.random_range(-0.5..0.5), rng.random_range(-0.5..0.5))
+                    k.project(&pc.coords).unwrap() + Vector2::new(rng.random_range(-0.5..0.5), rng.random_range(-0.5..0.5))
                 }
             })
             .collect();

@@ -14,3 +14,4 @@ pub mod system;
 pub mod optim;
 pub mod preprocess;
 pub mod aligner;
+pub mod map;

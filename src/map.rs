@@ -1,0 +1,265 @@
+//! The local map: keyframes, map points, covisibility. Ordered containers everywhere (BTreeMap)
+//! so that iteration order, and with it every output, is deterministic.
+
+use crate::preprocess::{Descriptor, FeatureGrid, Keypoint, Measurement, hamming};
+use nalgebra::{Isometry3, Point3, Vector3};
+use std::collections::{BTreeMap, BTreeSet};
+
+pub type KfId = u32;
+pub type PointId = u32;
+
+#[derive(Debug, Clone)]
+pub struct MapPoint {
+    pub id: PointId,
+    pub position: Vector3<f64>,
+    /// The observation descriptor with the least median distance to the others (ORB-SLAM).
+    pub descriptor: Descriptor,
+    /// Keyframe → keypoint index.
+    pub observations: BTreeMap<KfId, usize>,
+    /// Mean viewing direction (unit), for the viewing-angle check in projection search.
+    pub normal: Vector3<f64>,
+    /// Scale-invariance distance range.
+    pub min_distance: f64,
+    pub max_distance: f64,
+    /// Times predicted visible by the tracker / times actually matched (culling statistics).
+    pub visible: u32,
+    pub found: u32,
+    pub first_kf: KfId,
+}
+
+#[derive(Debug, Clone)]
+pub struct Keyframe {
+    pub id: KfId,
+    pub frame: usize,
+    pub t: f64,
+    /// World-to-camera.
+    pub pose_cw: Isometry3<f64>,
+    pub keypoints: Vec<Keypoint>,
+    pub descriptors: Vec<Descriptor>,
+    pub depth: Vec<f32>,
+    pub grid: FeatureGrid,
+    /// Map point of each keypoint.
+    pub points: Vec<Option<PointId>>,
+    /// Covisible keyframe → number of shared map points.
+    pub covisibility: BTreeMap<KfId, u32>,
+}
+
+impl Keyframe {
+    pub fn from_measurement(id: KfId, m: &Measurement, pose_cw: Isometry3<f64>) -> Self {
+        Self {
+            id,
+            frame: m.frame,
+            t: m.t,
+            pose_cw,
+            keypoints: m.keypoints.clone(),
+            descriptors: m.descriptors.clone(),
+            depth: m.depth.clone(),
+            grid: m.grid.clone(),
+            points: vec![None; m.keypoints.len()],
+            covisibility: BTreeMap::new(),
+        }
+    }
+
+    pub fn center(&self) -> Vector3<f64> {
+        self.pose_cw.inverse().translation.vector
+    }
+
+    pub fn n_points(&self) -> usize {
+        self.points.iter().filter(|p| p.is_some()).count()
+    }
+
+    /// Covisible keyframes, strongest first.
+    pub fn best_covisible(&self, n: usize) -> Vec<KfId> {
+        let mut v: Vec<(KfId, u32)> = self.covisibility.iter().map(|(&k, &w)| (k, w)).collect();
+        v.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
+        v.into_iter().take(n).map(|(k, _)| k).collect()
+    }
+}
+
+/// One map: a connected set of keyframes and points in one coordinate frame.
+#[derive(Debug, Clone, Default)]
+pub struct Map {
+    pub id: u32,
+    pub keyframes: BTreeMap<KfId, Keyframe>,
+    pub points: BTreeMap<PointId, MapPoint>,
+    next_kf: KfId,
+    next_point: PointId,
+}
+
+impl Map {
+    pub fn new(id: u32) -> Self {
+        Self { id, ..Default::default() }
+    }
+
+    pub fn add_keyframe(&mut self, m: &Measurement, pose_cw: Isometry3<f64>) -> KfId {
+        let id = self.next_kf;
+        self.next_kf += 1;
+        self.keyframes.insert(id, Keyframe::from_measurement(id, m, pose_cw));
+        id
+    }
+
+    /// Creates a map point observed by keypoint `kp` of keyframe `kf`.
+    pub fn add_point(&mut self, kf: KfId, kp: usize, position: Vector3<f64>, scale_factor: f64, n_levels: u32) -> PointId {
+        let id = self.next_point;
+        self.next_point += 1;
+        let k = &self.keyframes[&kf];
+        let descriptor = k.descriptors[kp];
+        let mut p = MapPoint {
+            id,
+            position,
+            descriptor,
+            observations: BTreeMap::new(),
+            normal: Vector3::z(),
+            min_distance: 0.0,
+            max_distance: f64::INFINITY,
+            visible: 1,
+            found: 1,
+            first_kf: kf,
+        };
+        p.observations.insert(kf, kp);
+        self.points.insert(id, p);
+        self.keyframes.get_mut(&kf).expect("keyframe exists").points[kp] = Some(id);
+        self.update_point(id, scale_factor, n_levels);
+        id
+    }
+
+    /// Adds an observation of an existing point.
+    pub fn observe(&mut self, kf: KfId, kp: usize, point: PointId) {
+        if let Some(p) = self.points.get_mut(&point) {
+            p.observations.insert(kf, kp);
+            if let Some(k) = self.keyframes.get_mut(&kf) {
+                k.points[kp] = Some(point);
+            }
+        }
+    }
+
+    /// Removes a point and its observations.
+    pub fn remove_point(&mut self, id: PointId) {
+        if let Some(p) = self.points.remove(&id) {
+            for (kf, kp) in p.observations {
+                if let Some(k) = self.keyframes.get_mut(&kf) {
+                    if k.points[kp] == Some(id) {
+                        k.points[kp] = None;
+                    }
+                }
+            }
+        }
+    }
+
+    /// Replaces `old` by `new` everywhere (point fusion).
+    pub fn replace_point(&mut self, old: PointId, new: PointId) {
+        if old == new {
+            return;
+        }
+        let Some(p) = self.points.remove(&old) else { return };
+        for (kf, kp) in p.observations {
+            let already = self.points.get(&new).is_some_and(|n| n.observations.contains_key(&kf));
+            if let Some(k) = self.keyframes.get_mut(&kf) {
+                k.points[kp] = if already { None } else { Some(new) };
+            }
+            if !already {
+                if let Some(n) = self.points.get_mut(&new) {
+                    n.observations.insert(kf, kp);
+                }
+            }
+        }
+        if let Some(n) = self.points.get_mut(&new) {
+            n.visible += p.visible;
+            n.found += p.found;
+        }
+    }
+
+    /// Recomputes a point's normal, distance range and representative descriptor.
+    pub fn update_point(&mut self, id: PointId, scale_factor: f64, n_levels: u32) {
+        let Some(p) = self.points.get(&id) else { return };
+        let mut normal = Vector3::zeros();
+        let mut descs = Vec::new();
+        for (kf, &kp) in &p.observations {
+            let k = &self.keyframes[kf];
+            normal += (p.position - k.center()).normalize();
+            descs.push(k.descriptors[kp]);
+        }
+        let (ref_kf, ref_kp) = (p.first_kf, p.observations.get(&p.first_kf).copied());
+        let (dist, level) = match (self.keyframes.get(&ref_kf), ref_kp) {
+            (Some(k), Some(kp)) => ((p.position - k.center()).norm(), k.keypoints[kp].octave as i32),
+            _ => {
+                let (kf, &kp) = p.observations.iter().next().expect("point has an observation");
+                let k = &self.keyframes[kf];
+                ((p.position - k.center()).norm(), k.keypoints[kp].octave as i32)
+            }
+        };
+        let level_scale = scale_factor.powi(level);
+        let max_distance = dist * level_scale;
+        let min_distance = max_distance / scale_factor.powi(n_levels as i32 - 1);
+        // Representative descriptor: least median distance to the others.
+        let best = (0..descs.len())
+            .min_by_key(|&i| {
+                let mut d: Vec<u32> = descs.iter().map(|o| hamming(&descs[i], o)).collect();
+                d.sort_unstable();
+                d[(d.len() - 1) / 2]
+            })
+            .map(|i| descs[i]);
+        let p = self.points.get_mut(&id).expect("checked above");
+        if normal.norm() > 0.0 {
+            p.normal = normal.normalize();
+        }
+        p.max_distance = max_distance;
+        p.min_distance = min_distance;
+        if let Some(d) = best {
+            p.descriptor = d;
+        }
+    }
+
+    /// Recomputes the covisibility edges of `kf` (and the reverse edges) from shared points.
+    pub fn update_covisibility(&mut self, kf: KfId) {
+        let mut counts: BTreeMap<KfId, u32> = BTreeMap::new();
+        for pid in self.keyframes[&kf].points.iter().flatten() {
+            if let Some(p) = self.points.get(pid) {
+                for &other in p.observations.keys() {
+                    if other != kf {
+                        *counts.entry(other).or_default() += 1;
+                    }
+                }
+            }
+        }
+        counts.retain(|_, &mut w| w >= 15);
+        for (&other, &w) in &counts {
+            if let Some(o) = self.keyframes.get_mut(&other) {
+                o.covisibility.insert(kf, w);
+            }
+        }
+        self.keyframes.get_mut(&kf).expect("keyframe exists").covisibility = counts;
+    }
+
+    /// Keyframes observing any of `points`, plus their best covisible neighbours.
+    pub fn local_keyframes(&self, points: impl Iterator<Item = PointId>, max: usize) -> Vec<KfId> {
+        let mut votes: BTreeMap<KfId, u32> = BTreeMap::new();
+        for pid in points {
+            if let Some(p) = self.points.get(&pid) {
+                for &kf in p.observations.keys() {
+                    *votes.entry(kf).or_default() += 1;
+                }
+            }
+        }
+        let mut v: Vec<(KfId, u32)> = votes.into_iter().collect();
+        v.sort_by(|a, b| b.1.cmp(&a.1).then(b.0.cmp(&a.0)));
+        let mut set: BTreeSet<KfId> = v.iter().take(max).map(|x| x.0).collect();
+        let firsts: Vec<KfId> = set.iter().copied().collect();
+        for kf in firsts {
+            if set.len() >= max {
+                break;
+            }
+            for n in self.keyframes[&kf].best_covisible(5) {
+                set.insert(n);
+            }
+        }
+        let mut out: Vec<KfId> = set.into_iter().collect();
+        out.truncate(max.max(1) * 2);
+        out
+    }
+
+    /// Map point in camera coordinates of `pose_cw`.
+    pub fn in_camera(pose_cw: &Isometry3<f64>, p: &Vector3<f64>) -> Vector3<f64> {
+        (pose_cw * Point3::from(*p)).coords
+    }
+}
