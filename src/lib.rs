@@ -15,3 +15,4 @@ pub mod optim;
 pub mod preprocess;
 pub mod aligner;
 pub mod map;
+pub mod tracker;

@@ -1,0 +1,361 @@
+//! Tracker (paper Table I): Measurement + local map → camera pose in the local map, reporting
+//! `able_to_track`. It owns its motion model; it does not know the controller's state.
+//!
+//! Order of attempts (ORB-SLAM's): constant-velocity prediction + projection search of the last
+//! frame's points; else descriptor matching against the reference keyframe; else PnP RANSAC on
+//! those matches. Whatever succeeds is refined against the local map (points of the keyframes
+//! that see the matched points, and their covisible neighbours).
+
+use crate::aligner::pnp_ransac;
+use crate::config::TrackerConfig;
+use crate::map::{KfId, Map, PointId};
+use crate::optim::{Intrinsics, Observation, PoseObservation, PoseParams, octave_information, refine_pose};
+use crate::preprocess::{Descriptor, Measurement, hamming};
+use nalgebra::{Isometry3, Vector2, Vector3};
+
+/// How the pose of a frame was found.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TrackMethod {
+    MotionModel,
+    ReferenceKeyframe,
+    Pnp,
+    Lost,
+}
+
+#[derive(Debug, Clone)]
+pub struct TrackResult {
+    /// World-to-camera pose (meaningful only when `able_to_track`).
+    pub pose_cw: Isometry3<f64>,
+    /// Map point matched to each keypoint (inliers of the final refinement only).
+    pub matches: Vec<Option<PointId>>,
+    pub n_inliers: usize,
+    pub able_to_track: bool,
+    pub method: TrackMethod,
+    /// Keyframe sharing most points with this frame.
+    pub reference_kf: Option<KfId>,
+}
+
+pub struct Tracker {
+    cfg: TrackerConfig,
+    intr: Intrinsics,
+    width: f64,
+    height: f64,
+    scales: Vec<f64>,
+    last_pose: Option<Isometry3<f64>>,
+    velocity: Option<Isometry3<f64>>,
+    last_matches: Vec<(usize, PointId)>,
+    pub reference_kf: Option<KfId>,
+}
+
+/// A map point as the projection search needs it.
+struct Candidate {
+    id: PointId,
+    position: Vector3<f64>,
+    descriptor: Descriptor,
+    normal: Vector3<f64>,
+    min_distance: f64,
+    max_distance: f64,
+}
+
+impl Tracker {
+    pub fn new(cfg: &TrackerConfig, intr: Intrinsics, width: u32, height: u32, scale_factor: f64, n_levels: u32) -> Self {
+        Self {
+            cfg: cfg.clone(),
+            intr,
+            width: width as f64,
+            height: height as f64,
+            scales: (0..n_levels).map(|l| scale_factor.powi(l as i32)).collect(),
+            last_pose: None,
+            velocity: None,
+            last_matches: Vec::new(),
+            reference_kf: None,
+        }
+    }
+
+    /// Starts tracking from a known pose (after initialisation or a relocalization).
+    pub fn reset(&mut self, pose_cw: Isometry3<f64>, matches: &[Option<PointId>], reference_kf: KfId) {
+        self.last_pose = Some(pose_cw);
+        self.velocity = None;
+        self.last_matches = matches.iter().enumerate().filter_map(|(i, m)| m.map(|p| (i, p))).collect();
+        self.reference_kf = Some(reference_kf);
+    }
+
+    /// Forgets the motion model (tracking lost).
+    pub fn lose(&mut self) {
+        self.velocity = None;
+        self.last_matches.clear();
+    }
+
+    pub fn track(&mut self, m: &Measurement, map: &Map) -> TrackResult {
+        let mut attempt = None;
+        if let (Some(last), Some(vel)) = (self.last_pose, self.velocity) {
+            attempt = self.with_motion_model(m, map, vel * last);
+        }
+        if attempt.is_none() {
+            attempt = self.with_reference_keyframe(m, map);
+        }
+        let Some((pose, matches, method)) = attempt else {
+            return self.lost(m);
+        };
+        let (pose, matches, n_inliers) = self.with_local_map(m, map, pose, matches);
+        let able = n_inliers >= self.cfg.min_inliers as usize;
+        if !able {
+            return self.lost(m);
+        }
+        let reference_kf = reference_keyframe(map, &matches);
+        if let Some(last) = self.last_pose {
+            self.velocity = Some(pose * last.inverse());
+        }
+        self.last_pose = Some(pose);
+        self.last_matches = matches.iter().enumerate().filter_map(|(i, p)| p.map(|p| (i, p))).collect();
+        if reference_kf.is_some() {
+            self.reference_kf = reference_kf;
+        }
+        TrackResult { pose_cw: pose, matches, n_inliers, able_to_track: true, method, reference_kf: self.reference_kf }
+    }
+
+    fn lost(&mut self, m: &Measurement) -> TrackResult {
+        self.lose();
+        TrackResult {
+            pose_cw: self.last_pose.unwrap_or_else(Isometry3::identity),
+            matches: vec![None; m.len()],
+            n_inliers: 0,
+            able_to_track: false,
+            method: TrackMethod::Lost,
+            reference_kf: self.reference_kf,
+        }
+    }
+
+    fn with_motion_model(
+        &self,
+        m: &Measurement,
+        map: &Map,
+        predicted: Isometry3<f64>,
+    ) -> Option<(Isometry3<f64>, Vec<Option<PointId>>, TrackMethod)> {
+        let cands: Vec<Candidate> = self
+            .last_matches
+            .iter()
+            .filter_map(|&(_, pid)| map.points.get(&pid).map(candidate))
+            .collect();
+        for radius in [self.cfg.search_radius_px, 2.0 * self.cfg.search_radius_px] {
+            let mut matches = vec![None; m.len()];
+            let n = self.search_by_projection(m, &predicted, &cands, radius, &mut matches, false);
+            if n < 20 {
+                continue;
+            }
+            let (pose, matches, inl) = self.refine(m, map, &predicted, matches);
+            if inl >= 10 {
+                return Some((pose, matches, TrackMethod::MotionModel));
+            }
+        }
+        None
+    }
+
+    fn with_reference_keyframe(
+        &self,
+        m: &Measurement,
+        map: &Map,
+    ) -> Option<(Isometry3<f64>, Vec<Option<PointId>>, TrackMethod)> {
+        let kf = map.keyframes.get(&self.reference_kf?)?;
+        // Brute-force descriptor matching of the keyframe's mapped keypoints, with Lowe's ratio.
+        let mut matches: Vec<Option<PointId>> = vec![None; m.len()];
+        let mut best_dist = vec![u32::MAX; m.len()];
+        for (kp, pid) in kf.points.iter().enumerate() {
+            let Some(pid) = pid else { continue };
+            if !map.points.contains_key(pid) {
+                continue;
+            }
+            let d = &kf.descriptors[kp];
+            let (mut b1, mut b2, mut bi) = (u32::MAX, u32::MAX, 0);
+            for (i, md) in m.descriptors.iter().enumerate() {
+                let h = hamming(d, md);
+                if h < b1 {
+                    (b2, b1, bi) = (b1, h, i);
+                } else if h < b2 {
+                    b2 = h;
+                }
+            }
+            if b1 <= 50 && (b1 as f64) < 0.7 * b2 as f64 && b1 < best_dist[bi] {
+                best_dist[bi] = b1;
+                matches[bi] = Some(*pid);
+            }
+        }
+        let n = matches.iter().flatten().count();
+        if n < 15 {
+            return None;
+        }
+        let init = self.last_pose.unwrap_or(kf.pose_cw);
+        let (pose, refined, inl) = self.refine(m, map, &init, matches.clone());
+        if inl >= 15 {
+            return Some((pose, refined, TrackMethod::ReferenceKeyframe));
+        }
+        // Far from the last pose: PnP RANSAC on the same matches gives a fresh start.
+        let (pts, uv, idx): (Vec<Vector3<f64>>, Vec<Vector2<f64>>, Vec<usize>) = matches
+            .iter()
+            .enumerate()
+            .filter_map(|(i, p)| p.map(|p| (map.points[&p].position, m.keypoints[i].un, i)))
+            .fold((vec![], vec![], vec![]), |(mut a, mut b, mut c), (p, u, i)| {
+                a.push(p);
+                b.push(u);
+                c.push(i);
+                (a, b, c)
+            });
+        let pnp = pnp_ransac(&pts, &uv, &self.intr, 4.0, 15).ok().flatten()?;
+        let mut inl_matches = vec![None; m.len()];
+        for (k, &i) in idx.iter().enumerate() {
+            if pnp.inliers[k] {
+                inl_matches[i] = matches[i];
+            }
+        }
+        let (pose, refined, inl) = self.refine(m, map, &pnp.pose, inl_matches);
+        (inl >= 15).then_some((pose, refined, TrackMethod::Pnp))
+    }
+
+    /// Adds matches from the local map, then refines once more.
+    fn with_local_map(
+        &self,
+        m: &Measurement,
+        map: &Map,
+        pose: Isometry3<f64>,
+        mut matches: Vec<Option<PointId>>,
+    ) -> (Isometry3<f64>, Vec<Option<PointId>>, usize) {
+        let seen: std::collections::BTreeSet<PointId> = matches.iter().flatten().copied().collect();
+        let local_kfs = map.local_keyframes(seen.iter().copied(), 20);
+        let mut cand_ids = std::collections::BTreeSet::new();
+        for kf in &local_kfs {
+            for pid in map.keyframes[kf].points.iter().flatten() {
+                if !seen.contains(pid) {
+                    cand_ids.insert(*pid);
+                }
+            }
+        }
+        let cands: Vec<Candidate> = cand_ids.iter().filter_map(|p| map.points.get(p).map(candidate)).collect();
+        self.search_by_projection(m, &pose, &cands, 3.0, &mut matches, true);
+        self.refine(m, map, &pose, matches)
+    }
+
+    /// Pose-only refinement; returns the pose, the inlier matches and their count.
+    fn refine(
+        &self,
+        m: &Measurement,
+        map: &Map,
+        init: &Isometry3<f64>,
+        matches: Vec<Option<PointId>>,
+    ) -> (Isometry3<f64>, Vec<Option<PointId>>, usize) {
+        let idx: Vec<usize> = (0..m.len()).filter(|&i| matches[i].is_some_and(|p| map.points.contains_key(&p))).collect();
+        let obs: Vec<PoseObservation> = idx
+            .iter()
+            .map(|&i| {
+                let kp = &m.keypoints[i];
+                let d = m.depth[i] as f64;
+                PoseObservation {
+                    point_w: map.points[&matches[i].expect("filtered")].position,
+                    obs: if d > 0.0 { Observation::Rgbd { uv: kp.un, depth: d } } else { Observation::Mono { uv: kp.un } },
+                    info: octave_information(kp.octave as u32),
+                }
+            })
+            .collect();
+        let r = refine_pose(init, &obs, &self.intr, &PoseParams::default());
+        let mut out = vec![None; m.len()];
+        for (k, &i) in idx.iter().enumerate() {
+            if r.inliers[k] {
+                out[i] = matches[i];
+            }
+        }
+        (r.pose, out, r.n_inliers)
+    }
+
+    /// Projects candidates with `pose` and matches them to unmatched keypoints near their
+    /// projection (radius scaled by the predicted pyramid level). Returns the number of new
+    /// matches. `ratio` enables Lowe's ratio test (used for the larger local-map search).
+    fn search_by_projection(
+        &self,
+        m: &Measurement,
+        pose: &Isometry3<f64>,
+        cands: &[Candidate],
+        radius: f64,
+        matches: &mut [Option<PointId>],
+        ratio: bool,
+    ) -> usize {
+        let center = pose.inverse().translation.vector;
+        let mut best = vec![u32::MAX; m.len()];
+        let already: std::collections::BTreeSet<PointId> = matches.iter().flatten().copied().collect();
+        let mut n = 0;
+        let n_levels = self.scales.len() as i32;
+        let log_scale = self.scales.get(1).copied().unwrap_or(1.2).ln();
+        for c in cands {
+            if already.contains(&c.id) {
+                continue;
+            }
+            let pc = pose * nalgebra::Point3::from(c.position);
+            let Some(uv) = self.intr.project(&pc.coords) else { continue };
+            if uv.x < 0.0 || uv.y < 0.0 || uv.x >= self.width || uv.y >= self.height {
+                continue;
+            }
+            let po = c.position - center;
+            let dist = po.norm();
+            if dist < 0.8 * c.min_distance || dist > 1.2 * c.max_distance {
+                continue;
+            }
+            let view_cos = po.dot(&c.normal) / dist;
+            if ratio && view_cos < 0.5 {
+                continue;
+            }
+            let level = ((c.max_distance / dist).ln() / log_scale).ceil().clamp(0.0, (n_levels - 1) as f64) as i32;
+            let view = if view_cos > 0.998 { 1.0 } else { 1.5 };
+            let r = radius * view * self.scales[level as usize];
+            let lo = (level - 1).max(0) as u8;
+            let hi = (level + 1).min(n_levels - 1) as u8;
+            let (mut b1, mut b2, mut bi) = (u32::MAX, u32::MAX, usize::MAX);
+            for i in m.grid.in_area(&m.keypoints, uv.x, uv.y, r, lo, hi) {
+                if matches[i].is_some() && best[i] == u32::MAX {
+                    continue; // matched by an earlier stage
+                }
+                let h = hamming(&c.descriptor, &m.descriptors[i]);
+                if h < b1 {
+                    (b2, b1, bi) = (b1, h, i);
+                } else if h < b2 {
+                    b2 = h;
+                }
+            }
+            if bi == usize::MAX || b1 > self.cfg.max_descriptor_distance {
+                continue;
+            }
+            if ratio && b2 != u32::MAX && b1 as f64 > self.cfg.match_ratio * b2 as f64 {
+                continue;
+            }
+            if b1 < best[bi] {
+                if best[bi] == u32::MAX {
+                    n += 1;
+                }
+                best[bi] = b1;
+                matches[bi] = Some(c.id);
+            }
+        }
+        n
+    }
+}
+
+fn candidate(p: &crate::map::MapPoint) -> Candidate {
+    Candidate {
+        id: p.id,
+        position: p.position,
+        descriptor: p.descriptor,
+        normal: p.normal,
+        min_distance: p.min_distance,
+        max_distance: p.max_distance,
+    }
+}
+
+/// The keyframe observing most of the matched points.
+pub fn reference_keyframe(map: &Map, matches: &[Option<PointId>]) -> Option<KfId> {
+    let mut votes: std::collections::BTreeMap<KfId, u32> = std::collections::BTreeMap::new();
+    for pid in matches.iter().flatten() {
+        if let Some(p) = map.points.get(pid) {
+            for &kf in p.observations.keys() {
+                *votes.entry(kf).or_default() += 1;
+            }
+        }
+    }
+    votes.into_iter().max_by(|a, b| a.1.cmp(&b.1).then(b.0.cmp(&a.0))).map(|(k, _)| k)
+}
