@@ -186,7 +186,8 @@ impl Texture {
         )
     }
 
-    /// Ceilings: bright with sparse panels and lamps (ceilings are weakly textured indoors).
+    /// Ceilings: bright panels, lamps and vents; a low robot camera sees a lot of ceiling, so it
+    /// must carry features too.
     pub fn ceiling(seed: u64) -> Self {
         let j = |k| Self::jitter(seed, k);
         Self::with(
@@ -194,8 +195,9 @@ impl Texture {
             0.8,
             0.1,
             vec![
-                Level { cell: 0.6 * j(1), density: 0.5, disc: 0.3, frame: 0.6, stretch: 1.0, contrast: 0.4 },
-                Level { cell: 0.15 * j(2), density: 0.3, disc: 0.3, frame: 0.0, stretch: 1.0, contrast: 0.35 },
+                Level { cell: 0.6 * j(1), density: 0.6, disc: 0.3, frame: 0.6, stretch: 1.0, contrast: 0.45 },
+                Level { cell: 0.2 * j(2), density: 0.5, disc: 0.3, frame: 0.2, stretch: 1.5, contrast: 0.5 },
+                Level { cell: 0.08 * j(3), density: 0.4, disc: 0.3, frame: 0.0, stretch: 1.0, contrast: 0.45 },
             ],
         )
     }

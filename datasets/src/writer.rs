@@ -237,6 +237,24 @@ pub fn generate(sc: &Scenario, opts: &GenOptions) -> Result<Stats> {
     Ok(Stats { frames: total, seconds: start.elapsed().as_secs_f64(), dirs })
 }
 
+/// Frame range (index into `sess.steps`, first frame, last frame) of every step that has
+/// frames: a step runs from its start time to the next step's start; the first step also takes
+/// any frame before its start.
+pub fn step_ranges(sess: &Session, frames: &[FramePlan]) -> Vec<(usize, usize, usize)> {
+    let mut out = Vec::new();
+    for (i, st) in sess.steps.iter().enumerate() {
+        let t_next = sess.steps.get(i + 1).map_or(f64::INFINITY, |n| n.t_start);
+        let first = if i == 0 { Some(0) } else { frames.iter().position(|f| f.t >= st.t_start - 1e-9) };
+        let last = frames.iter().rposition(|f| f.t < t_next - 1e-9);
+        if let (Some(a), Some(b)) = (first, last)
+            && a <= b
+        {
+            out.push((i, a, b));
+        }
+    }
+    out
+}
+
 fn scenario_json(
     sc: &Scenario,
     sess: &Session,
@@ -245,26 +263,22 @@ fn scenario_json(
     k: &Intrinsics,
     fps: f64,
 ) -> Result<String> {
-    let mut steps = Vec::new();
-    for (i, st) in sess.steps.iter().enumerate() {
-        let t_next = sess.steps.get(i + 1).map_or(f64::INFINITY, |n| n.t_start);
-        let first = if i == 0 { Some(0) } else { frames.iter().position(|f| f.t >= st.t_start - 1e-9) };
-        let last = frames.iter().rposition(|f| f.t < t_next - 1e-9);
-        let (Some(a), Some(b)) = (first, last) else { continue };
-        if a > b {
-            continue;
-        }
-        steps.push(StepJson {
-            step: st.step,
-            name: &st.name,
-            event: &st.event,
-            first_frame: a,
-            last_frame: b,
-            t_start: frames[a].t_rgb,
-            t_end: frames[b].t_rgb,
-            expected_states: &st.expected,
-        });
-    }
+    let steps = step_ranges(sess, frames)
+        .into_iter()
+        .map(|(i, a, b)| {
+            let st = &sess.steps[i];
+            StepJson {
+                step: st.step,
+                name: &st.name,
+                event: &st.event,
+                first_frame: a,
+                last_frame: b,
+                t_start: frames[a].t_rgb,
+                t_end: frames[b].t_rgb,
+                expected_states: &st.expected,
+            }
+        })
+        .collect();
     let kidnappings = sess
         .legs
         .windows(2)
