@@ -28,6 +28,21 @@ pub fn unit(h: u64, k: u64) -> f32 {
     (mix(h.wrapping_add(k.wrapping_mul(0x9E37_79B9_7F4A_7C15))) >> 40) as f32 / (1u64 << 24) as f32
 }
 
+/// Up to 20 uniform numbers of a cell, four 16-bit fields per hash word: one hash per four
+/// numbers keeps sampling cheap (texture sampling dominates the render time).
+struct CellRand([u64; 5]);
+
+impl CellRand {
+    fn new(h: u64) -> Self {
+        Self([mix(h ^ 1), mix(h ^ 2), mix(h ^ 3), mix(h ^ 4), mix(h ^ 5)])
+    }
+    #[inline]
+    fn get(&self, k: u64) -> f32 {
+        let w = self.0[(k / 4) as usize];
+        ((w >> (16 * (k % 4))) & 0xFFFF) as f32 / 65536.0
+    }
+}
+
 /// One scale of shapes.
 #[derive(Debug, Clone)]
 pub struct Level {
@@ -70,15 +85,15 @@ fn lerp3(a: [f32; 3], b: [f32; 3], t: f32) -> [f32; 3] {
 }
 
 /// A colour of random hue whose lightness is pushed away from `base_l` by up to `contrast`.
-fn shape_colour(h: u64, base_l: f32, contrast: f32) -> [f32; 3] {
-    let dir = if unit(h, 11) < 0.5 { -1.0 } else { 1.0 };
-    let mut l = base_l + dir * contrast * (0.35 + 0.65 * unit(h, 12));
+fn shape_colour(h: &CellRand, base_l: f32, contrast: f32) -> [f32; 3] {
+    let dir = if h.get(11) < 0.5 { -1.0 } else { 1.0 };
+    let mut l = base_l + dir * contrast * (0.35 + 0.65 * h.get(12));
     if !(0.03..=0.97).contains(&l) {
-        l = base_l - dir * contrast * (0.35 + 0.65 * unit(h, 12));
+        l = base_l - dir * contrast * (0.35 + 0.65 * h.get(12));
     }
     let l = l.clamp(0.03, 0.97);
-    let sat = 0.6 * unit(h, 13);
-    let hue = [unit(h, 14) - 0.5, unit(h, 15) - 0.5, unit(h, 16) - 0.5];
+    let sat = 0.6 * h.get(13);
+    let hue = [h.get(14) - 0.5, h.get(15) - 0.5, h.get(16) - 0.5];
     [
         (l * (1.0 + sat * hue[0])).clamp(0.0, 1.0),
         (l * (1.0 + sat * hue[1])).clamp(0.0, 1.0),
@@ -102,24 +117,25 @@ impl Texture {
                 continue;
             }
             let (fi, fj) = ((u / c).floor(), (v / c).floor());
-            let h = hash3(self.seed, li as u64, fi as i64, fj as i64);
-            if unit(h, 0) >= lv.density {
+            let h0 = hash3(self.seed, li as u64, fi as i64, fj as i64);
+            if ((h0 >> 40) as f32 / (1u64 << 24) as f32) >= lv.density {
                 continue;
             }
+            let h = CellRand::new(h0);
             let (x, y) = (u - fi * c, v - fj * c);
-            let cov = if unit(h, 1) < lv.disc {
-                let (cx, cy) = ((0.35 + 0.3 * unit(h, 2)) as f64 * c, (0.35 + 0.3 * unit(h, 3)) as f64 * c);
-                let r = (0.12 + 0.2 * unit(h, 4)) as f64 * c;
+            let cov = if h.get(1) < lv.disc {
+                let (cx, cy) = ((0.35 + 0.3 * h.get(2)) as f64 * c, (0.35 + 0.3 * h.get(3)) as f64 * c);
+                let r = (0.12 + 0.2 * h.get(4)) as f64 * c;
                 let d = ((x - cx).powi(2) + (y - cy).powi(2)).sqrt();
                 ((r - d) / w + 0.5).clamp(0.0, 1.0) as f32
             } else {
-                let st = 1.0 + (lv.stretch - 1.0).max(0.0) * unit(h, 5);
-                let wx = ((0.25 + 0.45 * unit(h, 6)) * st).min(0.9) as f64 * c;
-                let wy = ((0.25 + 0.45 * unit(h, 7)) / st).max(0.08) as f64 * c;
-                let x0 = 0.05 * c + (0.9 * c - wx) * unit(h, 8) as f64;
-                let y0 = 0.05 * c + (0.9 * c - wy) * unit(h, 9) as f64;
+                let st = 1.0 + (lv.stretch - 1.0).max(0.0) * h.get(5);
+                let wx = ((0.25 + 0.45 * h.get(6)) * st).min(0.9) as f64 * c;
+                let wy = ((0.25 + 0.45 * h.get(7)) / st).max(0.08) as f64 * c;
+                let x0 = 0.05 * c + (0.9 * c - wx) * h.get(8) as f64;
+                let y0 = 0.05 * c + (0.9 * c - wy) * h.get(9) as f64;
                 let outer = cov1(x, x0, x0 + wx, w) * cov1(y, y0, y0 + wy, w);
-                if unit(h, 10) < lv.frame {
+                if h.get(10) < lv.frame {
                     let t = 0.18 * wx.min(wy);
                     outer - cov1(x, x0 + t, x0 + wx - t, w) * cov1(y, y0 + t, y0 + wy - t, w)
                 } else {
@@ -127,7 +143,7 @@ impl Texture {
                 }
             };
             if cov > 0.0 {
-                let sc = shape_colour(h, lightness(col), lv.contrast);
+                let sc = shape_colour(&h, lightness(col), lv.contrast);
                 col = lerp3(col, sc, cov * fade);
             }
         }

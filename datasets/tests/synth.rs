@@ -257,3 +257,33 @@ fn case_study_sessions_and_expected_states() {
     let p = gt2[0].pose.translation.vector;
     assert!((10.5..14.5).contains(&p.x) && (6.2..10.2).contains(&p.y), "session 2 starts at {p:?}");
 }
+
+/// Share of pixels whose colours are equal in two renders.
+fn equal_share(sc: &Scene, a: &Isometry3<f64>, b: &Isometry3<f64>) -> f64 {
+    let k = Intrinsics::kinect(320, 240);
+    let (ra, rb) = (render(sc, &k, a), render(sc, &k, b));
+    let eq = ra.rgb.chunks(3).zip(rb.rgb.chunks(3)).filter(|(p, q)| p.iter().zip(q.iter()).all(|(x, y)| (x - y).abs() < 2e-3)).count();
+    eq as f64 / (320.0 * 240.0)
+}
+
+#[test]
+fn look_alike_places_render_alike() {
+    // Case study: facing door B from the corridor looks like facing door C (only the view
+    // through the doorway differs), while facing a unique wall does not.
+    let sc = scenarios::build("case-study", 1).unwrap();
+    let rot = look_rotation(90f64.to_radians(), 15f64.to_radians(), 0.0);
+    let at = |x: f64| Isometry3::from_parts(Translation3::new(x, 5.1, 0.35), rot);
+    let same = equal_share(&sc.scene, &at(5.5), &at(11.5));
+    let other = equal_share(&sc.scene, &at(5.5), &at(2.0));
+    assert!(same > 0.7, "B/C views share only {same}");
+    assert!(other < 0.2, "B view and room-1 door view share {other}");
+    // Aliasing scenario: room B is room A rotated by 180 degrees about (7.55, 2.0).
+    let sc = scenarios::build("aliasing", 1).unwrap();
+    let a = Isometry3::from_parts(Translation3::new(2.0, 1.5, 1.3), look_rotation(2.5, -0.1, 0.0));
+    let b = Isometry3::from_parts(
+        Translation3::new(2.0 * 7.55 - 2.0, 2.0 * 2.0 - 1.5, 1.3),
+        look_rotation(2.5 + std::f64::consts::PI, -0.1, 0.0),
+    );
+    let same = equal_share(&sc.scene, &a, &b);
+    assert!(same > 0.98, "rooms A and B share only {same}");
+}
