@@ -11,7 +11,11 @@ use crate::sheet::write_contact_sheet;
 use crate::writer::{GenOptions, generate};
 
 #[derive(Debug, Parser)]
-#[command(name = "homing-datasets", version, about = "Synthetic TUM RGB-D sequences for homing")]
+#[command(
+    name = "homing-datasets",
+    version,
+    about = "Synthetic TUM RGB-D sequences for homing"
+)]
 pub struct Cli {
     #[command(subcommand)]
     pub cmd: Command,
@@ -78,7 +82,11 @@ pub struct SynthArgs {
 
 impl SynthArgs {
     pub fn sensor(&self) -> anyhow::Result<SensorOptions> {
-        let mut s = if self.clean { SensorOptions::clean() } else { SensorOptions::realistic() };
+        let mut s = if self.clean {
+            SensorOptions::clean()
+        } else {
+            SensorOptions::realistic()
+        };
         s.depth_noise &= !self.no_depth_noise;
         s.depth_holes &= !self.no_depth_holes;
         s.image_noise &= !self.no_image_noise;
@@ -105,7 +113,11 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         }
         Command::Synth(a) => {
             let Some(sc) = scenarios::build(&a.scenario, a.seed) else {
-                bail!("unknown scenario {:?}; choose one of {}", a.scenario, NAMES.join(", "));
+                bail!(
+                    "unknown scenario {:?}; choose one of {}",
+                    a.scenario,
+                    NAMES.join(", ")
+                );
             };
             let opts = GenOptions {
                 out: a.out.clone(),
@@ -114,7 +126,8 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
                 sensor: a.sensor()?,
                 max_frames: a.max_frames,
             };
-            let stats = generate(&sc, &opts).with_context(|| format!("generating {}", a.scenario))?;
+            let stats =
+                generate(&sc, &opts).with_context(|| format!("generating {}", a.scenario))?;
             let (w, h) = opts.size();
             for d in &stats.dirs {
                 println!("wrote {}", d.display());
@@ -126,7 +139,13 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
                 stats.fps()
             );
         }
-        Command::ContactSheet { dir, every, out, thumb, columns } => {
+        Command::ContactSheet {
+            dir,
+            every,
+            out,
+            thumb,
+            columns,
+        } => {
             write_contact_sheet(&dir, every, thumb, columns, &out)
                 .with_context(|| format!("contact sheet of {}", dir.display()))?;
             println!("wrote {}", out.display());

@@ -25,7 +25,11 @@ pub struct Waypoint {
 
 /// Camera-to-world rotation for a heading and elevation (roll about the optical axis added).
 pub fn look_rotation(yaw: f64, pitch: f64, roll: f64) -> UnitQuaternion<f64> {
-    let f = Vector3::new(pitch.cos() * yaw.cos(), pitch.cos() * yaw.sin(), pitch.sin());
+    let f = Vector3::new(
+        pitch.cos() * yaw.cos(),
+        pitch.cos() * yaw.sin(),
+        pitch.sin(),
+    );
     let r = Vector3::new(yaw.sin(), -yaw.cos(), 0.0);
     let d = f.cross(&r);
     let m = Matrix3::from_columns(&[r, d, f]);
@@ -48,7 +52,9 @@ pub struct Jitter {
 
 impl Jitter {
     pub fn none() -> Self {
-        Self { terms: Default::default() }
+        Self {
+            terms: Default::default(),
+        }
     }
 
     /// `pos_amp` metres and `rot_amp` radians (per component, roughly the standard deviation).
@@ -73,7 +79,10 @@ impl Jitter {
     fn eval(&self, t: f64) -> [f64; 6] {
         let mut out = [0.0; 6];
         for (o, comp) in out.iter_mut().zip(&self.terms) {
-            *o = comp.iter().map(|(a, f, p)| a * (std::f64::consts::TAU * f * t + p).sin()).sum();
+            *o = comp
+                .iter()
+                .map(|(a, f, p)| a * (std::f64::consts::TAU * f * t + p).sin())
+                .sum();
         }
         out
     }
@@ -120,9 +129,17 @@ impl Path {
     pub fn pose(&self, t: f64) -> Isometry3<f64> {
         let w = &self.waypoints;
         let t = t.clamp(self.start(), self.end());
-        let i = w.partition_point(|p| p.t <= t).saturating_sub(1).min(w.len().saturating_sub(2));
-        let chans: [fn(&Waypoint) -> f64; 5] =
-            [|p| p.pos.x, |p| p.pos.y, |p| p.pos.z, |p| p.yaw, |p| p.pitch];
+        let i = w
+            .partition_point(|p| p.t <= t)
+            .saturating_sub(1)
+            .min(w.len().saturating_sub(2));
+        let chans: [fn(&Waypoint) -> f64; 5] = [
+            |p| p.pos.x,
+            |p| p.pos.y,
+            |p| p.pos.z,
+            |p| p.yaw,
+            |p| p.pitch,
+        ];
         let mut v = [0.0; 5];
         if w.len() == 1 {
             v = [w[0].pos.x, w[0].pos.y, w[0].pos.z, w[0].yaw, w[0].pitch];
@@ -130,12 +147,22 @@ impl Path {
             let dt = w[i + 1].t - w[i].t;
             let s = if dt > 0.0 { (t - w[i].t) / dt } else { 0.0 };
             for (k, f) in chans.iter().enumerate() {
-                v[k] = hermite(f(&w[i]), f(&w[i + 1]), self.tangent(i, f), self.tangent(i + 1, f), s, dt);
+                v[k] = hermite(
+                    f(&w[i]),
+                    f(&w[i + 1]),
+                    self.tangent(i, f),
+                    self.tangent(i + 1, f),
+                    s,
+                    dt,
+                );
             }
         }
         let j = self.jitter.eval(t);
         let rot = look_rotation(v[3] + j[3], v[4] + j[4], j[5]);
-        Isometry3::from_parts(Translation3::new(v[0] + j[0], v[1] + j[1], v[2] + j[2]), rot)
+        Isometry3::from_parts(
+            Translation3::new(v[0] + j[0], v[1] + j[1], v[2] + j[2]),
+            rot,
+        )
     }
 }
 
@@ -154,8 +181,20 @@ pub struct RobotScript {
 
 impl RobotScript {
     pub fn new(x: f64, y: f64, yaw_deg: f64, t0: f64, height: f64, pitch_deg: f64) -> Self {
-        let wp = Waypoint { t: t0, pos: Vector3::new(x, y, height), yaw: yaw_deg.to_radians(), pitch: pitch_deg.to_radians() };
-        Self { height, pitch: pitch_deg.to_radians(), speed: 0.5, turn_rate: 50f64.to_radians(), waypoints: vec![wp], marks: vec![] }
+        let wp = Waypoint {
+            t: t0,
+            pos: Vector3::new(x, y, height),
+            yaw: yaw_deg.to_radians(),
+            pitch: pitch_deg.to_radians(),
+        };
+        Self {
+            height,
+            pitch: pitch_deg.to_radians(),
+            speed: 0.5,
+            turn_rate: 50f64.to_radians(),
+            waypoints: vec![wp],
+            marks: vec![],
+        }
     }
 
     fn last(&self) -> Waypoint {
@@ -183,7 +222,11 @@ impl RobotScript {
         }
         // Cubic ease: peak rate is 1.5x the mean, so use the mean = 2/3 of the limit.
         let dt = d.abs() / (self.turn_rate * 2.0 / 3.0);
-        self.waypoints.push(Waypoint { t: l.t + dt.max(0.3), yaw: l.yaw + d, ..l });
+        self.waypoints.push(Waypoint {
+            t: l.t + dt.max(0.3),
+            yaw: l.yaw + d,
+            ..l
+        });
         self
     }
 
@@ -198,7 +241,11 @@ impl RobotScript {
         self.turn_to(dy.atan2(dx).to_degrees());
         let l = self.last();
         let dt = dist / (self.speed * 2.0 / 3.0);
-        self.waypoints.push(Waypoint { t: l.t + dt, pos: Vector3::new(x, y, self.height), ..l });
+        self.waypoints.push(Waypoint {
+            t: l.t + dt,
+            pos: Vector3::new(x, y, self.height),
+            ..l
+        });
         self
     }
 
@@ -220,11 +267,17 @@ impl RobotScript {
     /// Looks around in place: turns by `deg` and back.
     pub fn look_around(&mut self, deg: f64) -> &mut Self {
         let y0 = self.last().yaw.to_degrees();
-        self.turn_to(y0 + deg).turn_to(y0).turn_to(y0 - deg).turn_to(y0)
+        self.turn_to(y0 + deg)
+            .turn_to(y0)
+            .turn_to(y0 - deg)
+            .turn_to(y0)
     }
 
     pub fn path(&self, jitter: Jitter) -> Path {
-        Path { waypoints: self.waypoints.clone(), jitter }
+        Path {
+            waypoints: self.waypoints.clone(),
+            jitter,
+        }
     }
 }
 
@@ -249,7 +302,12 @@ impl HandScript {
                 yaw += std::f64::consts::TAU;
             }
         }
-        self.waypoints.push(Waypoint { t, pos: p, yaw, pitch });
+        self.waypoints.push(Waypoint {
+            t,
+            pos: p,
+            yaw,
+            pitch,
+        });
         self
     }
 
@@ -259,7 +317,10 @@ impl HandScript {
     }
 
     pub fn path(&self, jitter: Jitter) -> Path {
-        Path { waypoints: self.waypoints.clone(), jitter }
+        Path {
+            waypoints: self.waypoints.clone(),
+            jitter,
+        }
     }
 }
 

@@ -22,7 +22,14 @@ impl Intrinsics {
     /// Kinect-like intrinsics (TUM ROS default) scaled to `width` x `height`.
     pub fn kinect(width: u32, height: u32) -> Self {
         let s = width as f64 / 640.0;
-        Self { fx: 525.0 * s, fy: 525.0 * s, cx: 319.5 * s + 0.5 * (s - 1.0), cy: 239.5 * s + 0.5 * (s - 1.0), width, height }
+        Self {
+            fx: 525.0 * s,
+            fy: 525.0 * s,
+            cx: 319.5 * s + 0.5 * (s - 1.0),
+            cy: 239.5 * s + 0.5 * (s - 1.0),
+            width,
+            height,
+        }
     }
 
     /// Pixel coordinates (pixel centres at integers) of a point in the camera frame.
@@ -48,14 +55,24 @@ pub struct RenderOut {
 const NEAR: f64 = 0.02;
 
 /// Projected pixel bounding box [x0, x1] x [y0, y1] of a quad, or None if invisible.
-fn screen_bbox(q: &crate::scene::Quad, k: &Intrinsics, w2c: &Isometry3<f64>, eye: &Point3<f64>) -> Option<[f64; 4]> {
+fn screen_bbox(
+    q: &crate::scene::Quad,
+    k: &Intrinsics,
+    w2c: &Isometry3<f64>,
+    eye: &Point3<f64>,
+) -> Option<[f64; 4]> {
     // Back-face: the eye must be on the side the quad faces.
     if (eye[q.axis] - q.c) * q.facing <= 0.0 {
         return None;
     }
     let (ua, va) = in_plane(q.axis);
     let mut pts: Vec<Vector3<f64>> = Vec::with_capacity(4);
-    for (a, b) in [(q.lo[0], q.lo[1]), (q.hi[0], q.lo[1]), (q.hi[0], q.hi[1]), (q.lo[0], q.hi[1])] {
+    for (a, b) in [
+        (q.lo[0], q.lo[1]),
+        (q.hi[0], q.lo[1]),
+        (q.hi[0], q.hi[1]),
+        (q.lo[0], q.hi[1]),
+    ] {
         let mut p = Point3::origin();
         p[q.axis] = q.c;
         p[ua] = a;
@@ -78,7 +95,12 @@ fn screen_bbox(q: &crate::scene::Quad, k: &Intrinsics, w2c: &Isometry3<f64>, eye
     if clipped.is_empty() {
         return None;
     }
-    let mut bb = [f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY];
+    let mut bb = [
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+    ];
     for p in &clipped {
         let x = k.fx * p.x / p.z + k.cx;
         let y = k.fy * p.y / p.z + k.cy;
@@ -126,8 +148,11 @@ pub fn render(scene: &Scene, k: &Intrinsics, pose: &Isometry3<f64>) -> RenderOut
         .enumerate()
         .for_each(|(y, (((rgb, depth), id), cosr))| {
             let yf = y as f64;
-            let row: Vec<(usize, [f64; 4])> =
-                visible.iter().filter(|(_, b)| b[2] <= yf && yf <= b[3]).copied().collect();
+            let row: Vec<(usize, [f64; 4])> = visible
+                .iter()
+                .filter(|(_, b)| b[2] <= yf && yf <= b[3])
+                .copied()
+                .collect();
             let dy = (yf - k.cy) / k.fy;
             for x in 0..w {
                 let xf = x as f64;

@@ -129,7 +129,17 @@ impl Scene {
             return;
         }
         let shade = shade_for(axis, facing);
-        self.quads.push(Quad { axis, c, facing, lo, hi, tex, uv_origin, shade, flip: [false; 2] });
+        self.quads.push(Quad {
+            axis,
+            c,
+            facing,
+            lo,
+            hi,
+            tex,
+            uv_origin,
+            shade,
+            flip: [false; 2],
+        });
     }
 
     /// A wall (vertical quad facing into a room) with door openings: full-height segments
@@ -155,13 +165,28 @@ impl Scene {
             self.add_quad(axis, c, facing, [a, dh], [b, height], tex, uv_origin);
             x = b;
         }
-        self.add_quad(axis, c, facing, [x, 0.0], [along[1], height], tex, uv_origin);
+        self.add_quad(
+            axis,
+            c,
+            facing,
+            [x, 0.0],
+            [along[1], height],
+            tex,
+            uv_origin,
+        );
     }
 
     /// A rectangular room seen from inside: floor, ceiling and four walls with doors.
     /// Texture origins are the room's south-west corner, so two rooms with the same look and
     /// size are indistinguishable.
-    pub fn add_room(&mut self, min: [f64; 2], max: [f64; 2], height: f64, doors: &[Door], look: RoomLook) {
+    pub fn add_room(
+        &mut self,
+        min: [f64; 2],
+        max: [f64; 2],
+        height: f64,
+        doors: &[Door],
+        look: RoomLook,
+    ) {
         let fl = self.add_texture(Texture::floor(look.floor));
         let ce = self.add_texture(Texture::ceiling(look.ceiling));
         self.add_quad(2, 0.0, 1.0, min, max, fl, min);
@@ -169,20 +194,69 @@ impl Scene {
         let sides = [Side::South, Side::North, Side::West, Side::East];
         for (k, side) in sides.iter().enumerate() {
             let tex = self.add_texture(Texture::wall(look.walls[k]));
-            let ds: Vec<(f64, f64, f64)> =
-                doors.iter().filter(|d| d.side == *side).map(|d| (d.center, d.width, d.height)).collect();
+            let ds: Vec<(f64, f64, f64)> = doors
+                .iter()
+                .filter(|d| d.side == *side)
+                .map(|d| (d.center, d.width, d.height))
+                .collect();
             match side {
-                Side::South => self.add_wall(1, min[1], 1.0, [min[0], max[0]], height, &ds, tex, [min[0], 0.0]),
-                Side::North => self.add_wall(1, max[1], -1.0, [min[0], max[0]], height, &ds, tex, [min[0], 0.0]),
-                Side::West => self.add_wall(0, min[0], 1.0, [min[1], max[1]], height, &ds, tex, [min[1], 0.0]),
-                Side::East => self.add_wall(0, max[0], -1.0, [min[1], max[1]], height, &ds, tex, [min[1], 0.0]),
+                Side::South => self.add_wall(
+                    1,
+                    min[1],
+                    1.0,
+                    [min[0], max[0]],
+                    height,
+                    &ds,
+                    tex,
+                    [min[0], 0.0],
+                ),
+                Side::North => self.add_wall(
+                    1,
+                    max[1],
+                    -1.0,
+                    [min[0], max[0]],
+                    height,
+                    &ds,
+                    tex,
+                    [min[0], 0.0],
+                ),
+                Side::West => self.add_wall(
+                    0,
+                    min[0],
+                    1.0,
+                    [min[1], max[1]],
+                    height,
+                    &ds,
+                    tex,
+                    [min[1], 0.0],
+                ),
+                Side::East => self.add_wall(
+                    0,
+                    max[0],
+                    -1.0,
+                    [min[1], max[1]],
+                    height,
+                    &ds,
+                    tex,
+                    [min[1], 0.0],
+                ),
             }
         }
     }
 
     /// The reveal of a door opening through a wall of thickness between `w0` and `w1` (the
     /// two wall planes, along y for a north/south door or along x for an east/west one).
-    pub fn add_door_frame(&mut self, axis: usize, w0: f64, w1: f64, center: f64, width: f64, height: f64, seed: u64) {
+    #[allow(clippy::too_many_arguments)]
+    pub fn add_door_frame(
+        &mut self,
+        axis: usize,
+        w0: f64,
+        w1: f64,
+        center: f64,
+        width: f64,
+        height: f64,
+        seed: u64,
+    ) {
         let tex = self.add_texture(Texture::frame(seed));
         let (a, b) = (center - width / 2.0, center + width / 2.0);
         let (lo, hi) = (w0.min(w1), w0.max(w1));
@@ -191,24 +265,76 @@ impl Scene {
         // In-plane coordinates of a jamb: for normal x they are (y, z), for normal y (x, z).
         self.add_quad(jamb_axis, a, 1.0, [lo, 0.0], [hi, height], tex, [lo, 0.0]);
         self.add_quad(jamb_axis, b, -1.0, [lo, 0.0], [hi, height], tex, [lo, 0.0]);
-        let top = if axis == 1 { ([a, lo], [b, hi]) } else { ([lo, a], [hi, b]) };
+        let top = if axis == 1 {
+            ([a, lo], [b, hi])
+        } else {
+            ([lo, a], [hi, b])
+        };
         self.add_quad(2, height, -1.0, top.0, top.1, tex, top.0);
     }
 
     /// A box standing on the floor (5 outward faces), e.g. a cupboard, table block or sofa.
     pub fn add_box(&mut self, min: [f64; 3], max: [f64; 3], seed: u64) {
         let tex = self.add_texture(Texture::furniture(seed));
-        self.add_quad(0, min[0], -1.0, [min[1], min[2]], [max[1], max[2]], tex, [min[1], min[2]]);
-        self.add_quad(0, max[0], 1.0, [min[1], min[2]], [max[1], max[2]], tex, [min[1], min[2]]);
-        self.add_quad(1, min[1], -1.0, [min[0], min[2]], [max[0], max[2]], tex, [min[0], min[2]]);
-        self.add_quad(1, max[1], 1.0, [min[0], min[2]], [max[0], max[2]], tex, [min[0], min[2]]);
-        self.add_quad(2, max[2], 1.0, [min[0], min[1]], [max[0], max[1]], tex, [min[0], min[1]]);
+        self.add_quad(
+            0,
+            min[0],
+            -1.0,
+            [min[1], min[2]],
+            [max[1], max[2]],
+            tex,
+            [min[1], min[2]],
+        );
+        self.add_quad(
+            0,
+            max[0],
+            1.0,
+            [min[1], min[2]],
+            [max[1], max[2]],
+            tex,
+            [min[1], min[2]],
+        );
+        self.add_quad(
+            1,
+            min[1],
+            -1.0,
+            [min[0], min[2]],
+            [max[0], max[2]],
+            tex,
+            [min[0], min[2]],
+        );
+        self.add_quad(
+            1,
+            max[1],
+            1.0,
+            [min[0], min[2]],
+            [max[0], max[2]],
+            tex,
+            [min[0], min[2]],
+        );
+        self.add_quad(
+            2,
+            max[2],
+            1.0,
+            [min[0], min[1]],
+            [max[0], max[1]],
+            tex,
+            [min[0], min[1]],
+        );
     }
 
     /// A poster 1 cm in front of a wall. `wall` is the wall's side (as seen from inside its
     /// room), `c` the wall plane coordinate, `at` the (horizontal, vertical) lower-left corner
     /// in in-plane coordinates, `size` in metres. Records its four corners as landmarks.
-    pub fn add_poster(&mut self, name: &str, wall: Side, c: f64, at: [f64; 2], size: [f64; 2], seed: u64) {
+    pub fn add_poster(
+        &mut self,
+        name: &str,
+        wall: Side,
+        c: f64,
+        at: [f64; 2],
+        size: [f64; 2],
+        seed: u64,
+    ) {
         let tex = self.add_texture(Texture::poster(seed, size));
         let (axis, facing) = match wall {
             Side::South => (1, 1.0),
@@ -220,12 +346,23 @@ impl Scene {
         let hi = [at[0] + size[0], at[1] + size[1]];
         self.add_quad(axis, pc, facing, at, hi, tex, at);
         let (ua, va) = in_plane(axis);
-        for (k, (h, v)) in [(at[0], at[1]), (hi[0], at[1]), (hi[0], hi[1]), (at[0], hi[1])].iter().enumerate() {
+        for (k, (h, v)) in [
+            (at[0], at[1]),
+            (hi[0], at[1]),
+            (hi[0], hi[1]),
+            (at[0], hi[1]),
+        ]
+        .iter()
+        .enumerate()
+        {
             let mut p = [0.0; 3];
             p[axis] = pc;
             p[ua] = *h;
             p[va] = *v;
-            self.landmarks.push(Landmark { name: format!("{name}/corner{k}"), p });
+            self.landmarks.push(Landmark {
+                name: format!("{name}/corner{k}"),
+                p,
+            });
         }
     }
 
@@ -256,7 +393,10 @@ impl Scene {
         }
         for l in &other.landmarks {
             let p = [2.0 * cx - l.p[0], 2.0 * cy - l.p[1], l.p[2]];
-            self.landmarks.push(Landmark { name: format!("{}@rot180", l.name), p });
+            self.landmarks.push(Landmark {
+                name: format!("{}@rot180", l.name),
+                p,
+            });
         }
     }
 

@@ -78,10 +78,20 @@ fn rng_for(seed: u64, frame: u64, stream: u64, row: u64) -> ChaCha8Rng {
 }
 
 /// 8-bit colour image from the render, with exposure `gain` and optional noise.
-pub fn colour_image(r: &RenderOut, gain: f32, opts: &SensorOptions, seed: u64, frame: u64) -> RgbImage {
+pub fn colour_image(
+    r: &RenderOut,
+    gain: f32,
+    opts: &SensorOptions,
+    seed: u64,
+    frame: u64,
+) -> RgbImage {
     let (w, h) = (r.width as usize, r.height as usize);
     let mut buf = vec![0u8; w * h * 3];
-    let sigma = if opts.image_noise { opts.image_noise_sigma } else { 0.0 };
+    let sigma = if opts.image_noise {
+        opts.image_noise_sigma
+    } else {
+        0.0
+    };
     buf.par_chunks_mut(w * 3).enumerate().for_each(|(y, row)| {
         let mut rng = rng_for(seed, frame, 1, y as u64);
         let normal = Normal::new(0.0f32, sigma.max(1e-9) as f32).expect("finite sigma");
@@ -144,7 +154,11 @@ pub fn depth_image(r: &RenderOut, opts: &SensorOptions, seed: u64, frame: u64) -
             }
         }
     }
-    DepthImage { width: r.width, height: r.height, data }
+    DepthImage {
+        width: r.width,
+        height: r.height,
+        data,
+    }
 }
 
 /// Depth stamp offset and colour stamp jitter (seconds) of a frame.

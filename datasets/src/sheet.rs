@@ -54,14 +54,25 @@ pub fn draw_number(img: &mut RgbImage, x0: u32, y0: u32, n: usize, scale: u32, c
 /// Step number of each frame from `scenario.json`, if the folder has one.
 fn frame_steps(dir: &Path, n: usize) -> Vec<Option<usize>> {
     let mut out = vec![None; n];
-    let Ok(text) = std::fs::read_to_string(dir.join("scenario.json")) else { return out };
-    let Ok(v) = serde_json::from_str::<serde_json::Value>(&text) else { return out };
+    let Ok(text) = std::fs::read_to_string(dir.join("scenario.json")) else {
+        return out;
+    };
+    let Ok(v) = serde_json::from_str::<serde_json::Value>(&text) else {
+        return out;
+    };
     for st in v["steps"].as_array().into_iter().flatten() {
-        let (Some(s), Some(a), Some(b)) = (st["step"].as_u64(), st["first_frame"].as_u64(), st["last_frame"].as_u64())
-        else {
+        let (Some(s), Some(a), Some(b)) = (
+            st["step"].as_u64(),
+            st["first_frame"].as_u64(),
+            st["last_frame"].as_u64(),
+        ) else {
             continue;
         };
-        for f in out.iter_mut().take((b as usize + 1).min(n)).skip(a as usize) {
+        for f in out
+            .iter_mut()
+            .take((b as usize + 1).min(n))
+            .skip(a as usize)
+        {
             *f = Some(s as usize);
         }
     }
@@ -69,9 +80,16 @@ fn frame_steps(dir: &Path, n: usize) -> Vec<Option<usize>> {
 }
 
 /// Builds the contact sheet of the TUM folder `dir`.
-pub fn contact_sheet(dir: &Path, every: usize, thumb_width: u32, columns: usize) -> Result<RgbImage> {
+pub fn contact_sheet(
+    dir: &Path,
+    every: usize,
+    thumb_width: u32,
+    columns: usize,
+) -> Result<RgbImage> {
     if every == 0 || columns == 0 || thumb_width < 16 {
-        return Err(Error::Invalid("--every and --columns must be at least 1, the thumbnail width at least 16".into()));
+        return Err(Error::Invalid(
+            "--every and --columns must be at least 1, the thumbnail width at least 16".into(),
+        ));
     }
     let list = read_list(&dir.join("rgb.txt"))?;
     if list.is_empty() {
@@ -82,9 +100,17 @@ pub fn contact_sheet(dir: &Path, every: usize, thumb_width: u32, columns: usize)
     let mut thumbs = Vec::with_capacity(picked.len());
     for &i in &picked {
         let path = dir.join(&list[i].file);
-        let img = image::open(&path).map_err(|e| Error::file(&path, format!("cannot read image: {e}")))?;
-        let th = (img.height() as f64 * thumb_width as f64 / img.width() as f64).round().max(1.0) as u32;
-        let mut t = imageops::resize(&img.to_rgb8(), thumb_width, th, imageops::FilterType::Triangle);
+        let img = image::open(&path)
+            .map_err(|e| Error::file(&path, format!("cannot read image: {e}")))?;
+        let th = (img.height() as f64 * thumb_width as f64 / img.width() as f64)
+            .round()
+            .max(1.0) as u32;
+        let mut t = imageops::resize(
+            &img.to_rgb8(),
+            thumb_width,
+            th,
+            imageops::FilterType::Triangle,
+        );
         let scale = (thumb_width / 80).max(1);
         draw_number(&mut t, 0, 0, i, scale, Rgb([255, 255, 255]));
         if let Some(s) = steps[i] {
@@ -97,16 +123,31 @@ pub fn contact_sheet(dir: &Path, every: usize, thumb_width: u32, columns: usize)
     let rows = picked.len().div_ceil(columns);
     let gap = 2;
     let cols = columns.min(picked.len()) as u32;
-    let mut sheet = RgbImage::from_pixel(cols * (thumb_width + gap), rows as u32 * (th + gap), Rgb([40, 40, 40]));
+    let mut sheet = RgbImage::from_pixel(
+        cols * (thumb_width + gap),
+        rows as u32 * (th + gap),
+        Rgb([40, 40, 40]),
+    );
     for (k, t) in thumbs.iter().enumerate() {
         let (c, r) = ((k % columns) as u32, (k / columns) as u32);
-        imageops::replace(&mut sheet, t, (c * (thumb_width + gap)) as i64, (r * (th + gap)) as i64);
+        imageops::replace(
+            &mut sheet,
+            t,
+            (c * (thumb_width + gap)) as i64,
+            (r * (th + gap)) as i64,
+        );
     }
     Ok(sheet)
 }
 
 /// Writes a contact sheet as PNG.
-pub fn write_contact_sheet(dir: &Path, every: usize, thumb_width: u32, columns: usize, out: &Path) -> Result<()> {
+pub fn write_contact_sheet(
+    dir: &Path,
+    every: usize,
+    thumb_width: u32,
+    columns: usize,
+    out: &Path,
+) -> Result<()> {
     let sheet = contact_sheet(dir, every, thumb_width, columns)?;
     homing::io::tum::save_png(out, &DynamicImage::ImageRgb8(sheet))
 }

@@ -81,7 +81,11 @@ fn cov1(x: f64, a: f64, b: f64, w: f64) -> f32 {
 
 #[inline]
 fn lerp3(a: [f32; 3], b: [f32; 3], t: f32) -> [f32; 3] {
-    [a[0] + (b[0] - a[0]) * t, a[1] + (b[1] - a[1]) * t, a[2] + (b[2] - a[2]) * t]
+    [
+        a[0] + (b[0] - a[0]) * t,
+        a[1] + (b[1] - a[1]) * t,
+        a[2] + (b[2] - a[2]) * t,
+    ]
 }
 
 /// A colour of random hue whose lightness is pushed away from `base_l` by up to `contrast`.
@@ -124,7 +128,10 @@ impl Texture {
             let h = CellRand::new(h0);
             let (x, y) = (u - fi * c, v - fj * c);
             let cov = if h.get(1) < lv.disc {
-                let (cx, cy) = ((0.35 + 0.3 * h.get(2)) as f64 * c, (0.35 + 0.3 * h.get(3)) as f64 * c);
+                let (cx, cy) = (
+                    (0.35 + 0.3 * h.get(2)) as f64 * c,
+                    (0.35 + 0.3 * h.get(3)) as f64 * c,
+                );
                 let r = (0.12 + 0.2 * h.get(4)) as f64 * c;
                 let d = ((x - cx).powi(2) + (y - cy).powi(2)).sqrt();
                 ((r - d) / w + 0.5).clamp(0.0, 1.0) as f32
@@ -162,7 +169,12 @@ impl Texture {
             (base_l * (1.0 + tint * t[1])).clamp(0.0, 1.0),
             (base_l * (1.0 + tint * t[2])).clamp(0.0, 1.0),
         ];
-        Self { seed, base, levels, border: None }
+        Self {
+            seed,
+            base,
+            levels,
+            border: None,
+        }
     }
 
     /// Scale factor in [0.8, 1.25) so that two textures never share cell grids.
@@ -179,10 +191,38 @@ impl Texture {
             l,
             0.5,
             vec![
-                Level { cell: 0.9 * j(1), density: 0.6, disc: 0.1, frame: 0.3, stretch: 1.5, contrast: 0.3 },
-                Level { cell: 0.33 * j(2), density: 0.55, disc: 0.25, frame: 0.25, stretch: 1.3, contrast: 0.45 },
-                Level { cell: 0.13 * j(3), density: 0.5, disc: 0.2, frame: 0.1, stretch: 1.0, contrast: 0.5 },
-                Level { cell: 0.055 * j(4), density: 0.35, disc: 0.2, frame: 0.0, stretch: 1.0, contrast: 0.4 },
+                Level {
+                    cell: 0.9 * j(1),
+                    density: 0.6,
+                    disc: 0.1,
+                    frame: 0.3,
+                    stretch: 1.5,
+                    contrast: 0.3,
+                },
+                Level {
+                    cell: 0.33 * j(2),
+                    density: 0.55,
+                    disc: 0.25,
+                    frame: 0.25,
+                    stretch: 1.3,
+                    contrast: 0.45,
+                },
+                Level {
+                    cell: 0.13 * j(3),
+                    density: 0.5,
+                    disc: 0.2,
+                    frame: 0.1,
+                    stretch: 1.0,
+                    contrast: 0.5,
+                },
+                Level {
+                    cell: 0.055 * j(4),
+                    density: 0.35,
+                    disc: 0.2,
+                    frame: 0.0,
+                    stretch: 1.0,
+                    contrast: 0.4,
+                },
             ],
         )
     }
@@ -195,9 +235,30 @@ impl Texture {
             0.35 + 0.2 * unit(mix(seed), 9),
             0.6,
             vec![
-                Level { cell: 0.6 * j(1), density: 0.7, disc: 0.0, frame: 0.2, stretch: 3.0, contrast: 0.3 },
-                Level { cell: 0.2 * j(2), density: 0.5, disc: 0.15, frame: 0.2, stretch: 2.0, contrast: 0.4 },
-                Level { cell: 0.07 * j(3), density: 0.45, disc: 0.3, frame: 0.0, stretch: 1.0, contrast: 0.45 },
+                Level {
+                    cell: 0.6 * j(1),
+                    density: 0.7,
+                    disc: 0.0,
+                    frame: 0.2,
+                    stretch: 3.0,
+                    contrast: 0.3,
+                },
+                Level {
+                    cell: 0.2 * j(2),
+                    density: 0.5,
+                    disc: 0.15,
+                    frame: 0.2,
+                    stretch: 2.0,
+                    contrast: 0.4,
+                },
+                Level {
+                    cell: 0.07 * j(3),
+                    density: 0.45,
+                    disc: 0.3,
+                    frame: 0.0,
+                    stretch: 1.0,
+                    contrast: 0.45,
+                },
             ],
         )
     }
@@ -211,9 +272,30 @@ impl Texture {
             0.8,
             0.1,
             vec![
-                Level { cell: 0.6 * j(1), density: 0.6, disc: 0.3, frame: 0.6, stretch: 1.0, contrast: 0.45 },
-                Level { cell: 0.2 * j(2), density: 0.5, disc: 0.3, frame: 0.2, stretch: 1.5, contrast: 0.5 },
-                Level { cell: 0.08 * j(3), density: 0.4, disc: 0.3, frame: 0.0, stretch: 1.0, contrast: 0.45 },
+                Level {
+                    cell: 0.6 * j(1),
+                    density: 0.6,
+                    disc: 0.3,
+                    frame: 0.6,
+                    stretch: 1.0,
+                    contrast: 0.45,
+                },
+                Level {
+                    cell: 0.2 * j(2),
+                    density: 0.5,
+                    disc: 0.3,
+                    frame: 0.2,
+                    stretch: 1.5,
+                    contrast: 0.5,
+                },
+                Level {
+                    cell: 0.08 * j(3),
+                    density: 0.4,
+                    disc: 0.3,
+                    frame: 0.0,
+                    stretch: 1.0,
+                    contrast: 0.45,
+                },
             ],
         )
     }
@@ -226,9 +308,30 @@ impl Texture {
             0.25 + 0.5 * unit(mix(seed), 9),
             1.0,
             vec![
-                Level { cell: 0.3 * j(1), density: 0.7, disc: 0.1, frame: 0.4, stretch: 1.8, contrast: 0.5 },
-                Level { cell: 0.1 * j(2), density: 0.6, disc: 0.3, frame: 0.1, stretch: 1.0, contrast: 0.55 },
-                Level { cell: 0.04 * j(3), density: 0.4, disc: 0.2, frame: 0.0, stretch: 1.0, contrast: 0.4 },
+                Level {
+                    cell: 0.3 * j(1),
+                    density: 0.7,
+                    disc: 0.1,
+                    frame: 0.4,
+                    stretch: 1.8,
+                    contrast: 0.5,
+                },
+                Level {
+                    cell: 0.1 * j(2),
+                    density: 0.6,
+                    disc: 0.3,
+                    frame: 0.1,
+                    stretch: 1.0,
+                    contrast: 0.55,
+                },
+                Level {
+                    cell: 0.04 * j(3),
+                    density: 0.4,
+                    disc: 0.2,
+                    frame: 0.0,
+                    stretch: 1.0,
+                    contrast: 0.4,
+                },
             ],
         )
     }
@@ -239,7 +342,14 @@ impl Texture {
             seed,
             0.3,
             0.3,
-            vec![Level { cell: 0.12, density: 0.3, disc: 0.5, frame: 0.0, stretch: 1.0, contrast: 0.4 }],
+            vec![Level {
+                cell: 0.12,
+                density: 0.3,
+                disc: 0.5,
+                frame: 0.0,
+                stretch: 1.0,
+                contrast: 0.4,
+            }],
         )
     }
 
@@ -251,9 +361,30 @@ impl Texture {
             0.85,
             0.2,
             vec![
-                Level { cell: 0.2 * j(1), density: 0.8, disc: 0.3, frame: 0.3, stretch: 1.5, contrast: 0.7 },
-                Level { cell: 0.07 * j(2), density: 0.7, disc: 0.3, frame: 0.1, stretch: 1.0, contrast: 0.7 },
-                Level { cell: 0.03 * j(3), density: 0.4, disc: 0.2, frame: 0.0, stretch: 1.0, contrast: 0.6 },
+                Level {
+                    cell: 0.2 * j(1),
+                    density: 0.8,
+                    disc: 0.3,
+                    frame: 0.3,
+                    stretch: 1.5,
+                    contrast: 0.7,
+                },
+                Level {
+                    cell: 0.07 * j(2),
+                    density: 0.7,
+                    disc: 0.3,
+                    frame: 0.1,
+                    stretch: 1.0,
+                    contrast: 0.7,
+                },
+                Level {
+                    cell: 0.03 * j(3),
+                    density: 0.4,
+                    disc: 0.2,
+                    frame: 0.0,
+                    stretch: 1.0,
+                    contrast: 0.6,
+                },
             ],
         );
         t.border = Some((POSTER_BORDER, POSTER_BORDER_COLOUR, size));

@@ -70,7 +70,12 @@ pub struct FramePlan {
 
 /// Frame times of a session: 30 Hz along each leg (every `stride`-th frame), no frames in the
 /// gaps between legs.
-pub fn plan_frames(sess: &Session, stride: usize, sensor: &SensorOptions, seed: u64) -> Vec<FramePlan> {
+pub fn plan_frames(
+    sess: &Session,
+    stride: usize,
+    sensor: &SensorOptions,
+    seed: u64,
+) -> Vec<FramePlan> {
     let mut out = Vec::new();
     let dt = 1.0 / FPS;
     for (li, leg) in sess.legs.iter().enumerate() {
@@ -81,7 +86,14 @@ pub fn plan_frames(sess: &Session, stride: usize, sensor: &SensorOptions, seed: 
             let t = (leg.start() + k as f64 * dt + jit).clamp(leg.start(), leg.end());
             let t_rgb = round6(sess.stamp0 + t);
             let t_depth = round6(t_rgb + doff);
-            out.push(FramePlan { index, leg: li, t, t_rgb, t_depth, pose: leg.pose(t) });
+            out.push(FramePlan {
+                index,
+                leg: li,
+                t,
+                t_rgb,
+                t_depth,
+                pose: leg.pose(t),
+            });
         }
     }
     out
@@ -100,7 +112,9 @@ pub fn gain_at(sess: &Session, t: f64, sensor: &SensorOptions) -> f32 {
     let mut g = 1.0f64;
     for &(a, b) in &sess.dark {
         let ramp = 0.3;
-        let inside = ((t - a) / ramp).clamp(0.0, 1.0).min(((b - t) / ramp).clamp(0.0, 1.0));
+        let inside = ((t - a) / ramp)
+            .clamp(0.0, 1.0)
+            .min(((b - t) / ramp).clamp(0.0, 1.0));
         let s = inside * inside * (3.0 - 2.0 * inside);
         g = g.min(1.0 - (1.0 - DARK_GAIN as f64) * s);
     }
@@ -147,7 +161,8 @@ struct CameraFile<'a> {
 }
 
 pub const WORLD_FRAME: &str = "x east, y north, z up (metres); floor at z = 0";
-pub const CAMERA_FRAME: &str = "TUM/OpenCV camera axes: x right, y down, z forward; poses are camera-to-world";
+pub const CAMERA_FRAME: &str =
+    "TUM/OpenCV camera axes: x right, y down, z forward; poses are camera-to-world";
 
 /// Camera configuration written next to the images.
 pub fn camera_config(k: &Intrinsics, fps: f64, scenario: &str) -> CameraConfig {
@@ -207,24 +222,59 @@ pub fn generate(sc: &Scenario, opts: &GenOptions) -> Result<Stats> {
             let mut r = render(&sc.scene, &k, &f.pose);
             if opts.sensor.motion_blur {
                 let leg = &sess.legs[f.leg];
-                let extra: Vec<RenderOut> =
-                    [-0.005, 0.005].iter().map(|d| render(&sc.scene, &k, &leg.pose(f.t + d))).collect();
+                let extra: Vec<RenderOut> = [-0.005, 0.005]
+                    .iter()
+                    .map(|d| render(&sc.scene, &k, &leg.pose(f.t + d)))
+                    .collect();
                 average(&mut r, &extra);
             }
             let gain = gain_at(sess, f.t, &opts.sensor);
             let rgb = colour_image(&r, gain, &opts.sensor, seed, f.index as u64);
             let depth = depth_image(&r, &opts.sensor, seed, f.index as u64);
-            save_png(&dir.join(format!("rgb/{:.6}.png", f.t_rgb)), &DynamicImage::ImageRgb8(rgb))?;
-            save_depth(&dir.join(format!("depth/{:.6}.png", f.t_depth)), &depth, DEPTH_SCALE)
+            save_png(
+                &dir.join(format!("rgb/{:.6}.png", f.t_rgb)),
+                &DynamicImage::ImageRgb8(rgb),
+            )?;
+            save_depth(
+                &dir.join(format!("depth/{:.6}.png", f.t_depth)),
+                &depth,
+                DEPTH_SCALE,
+            )
         })?;
-        let header = format!("homing-datasets {} {} seed {}", sc.name, sess.name, opts.seed);
-        let rgb_list: Vec<(f64, String)> = frames.iter().map(|f| (f.t_rgb, format!("rgb/{:.6}.png", f.t_rgb))).collect();
-        let depth_list: Vec<(f64, String)> =
-            frames.iter().map(|f| (f.t_depth, format!("depth/{:.6}.png", f.t_depth))).collect();
-        write_list(&dir.join("rgb.txt"), &rgb_list, &format!("color images\n{header}"))?;
-        write_list(&dir.join("depth.txt"), &depth_list, &format!("depth maps\n{header}"))?;
-        let gt: Vec<StampedPose> = frames.iter().map(|f| StampedPose { t: f.t_rgb, pose: f.pose }).collect();
-        write_trajectory(&dir.join("groundtruth.txt"), &gt, &format!("ground truth trajectory\n{header}"))?;
+        let header = format!(
+            "homing-datasets {} {} seed {}",
+            sc.name, sess.name, opts.seed
+        );
+        let rgb_list: Vec<(f64, String)> = frames
+            .iter()
+            .map(|f| (f.t_rgb, format!("rgb/{:.6}.png", f.t_rgb)))
+            .collect();
+        let depth_list: Vec<(f64, String)> = frames
+            .iter()
+            .map(|f| (f.t_depth, format!("depth/{:.6}.png", f.t_depth)))
+            .collect();
+        write_list(
+            &dir.join("rgb.txt"),
+            &rgb_list,
+            &format!("color images\n{header}"),
+        )?;
+        write_list(
+            &dir.join("depth.txt"),
+            &depth_list,
+            &format!("depth maps\n{header}"),
+        )?;
+        let gt: Vec<StampedPose> = frames
+            .iter()
+            .map(|f| StampedPose {
+                t: f.t_rgb,
+                pose: f.pose,
+            })
+            .collect();
+        write_trajectory(
+            &dir.join("groundtruth.txt"),
+            &gt,
+            &format!("ground truth trajectory\n{header}"),
+        )?;
         let cam = camera_config(&k, fps, &sc.name);
         let toml = toml::to_string(&CameraFile { camera: &cam })
             .map_err(|e| Error::Invalid(format!("cannot serialise camera.toml: {e}")))?;
@@ -234,7 +284,11 @@ pub fn generate(sc: &Scenario, opts: &GenOptions) -> Result<Stats> {
         total += frames.len();
         dirs.push(dir);
     }
-    Ok(Stats { frames: total, seconds: start.elapsed().as_secs_f64(), dirs })
+    Ok(Stats {
+        frames: total,
+        seconds: start.elapsed().as_secs_f64(),
+        dirs,
+    })
 }
 
 /// Frame range (index into `sess.steps`, first frame, last frame) of every step that has
@@ -244,7 +298,11 @@ pub fn step_ranges(sess: &Session, frames: &[FramePlan]) -> Vec<(usize, usize, u
     let mut out = Vec::new();
     for (i, st) in sess.steps.iter().enumerate() {
         let t_next = sess.steps.get(i + 1).map_or(f64::INFINITY, |n| n.t_start);
-        let first = if i == 0 { Some(0) } else { frames.iter().position(|f| f.t >= st.t_start - 1e-9) };
+        let first = if i == 0 {
+            Some(0)
+        } else {
+            frames.iter().position(|f| f.t >= st.t_start - 1e-9)
+        };
         let last = frames.iter().rposition(|f| f.t < t_next - 1e-9);
         if let (Some(a), Some(b)) = (first, last)
             && a <= b
@@ -282,10 +340,18 @@ fn scenario_json(
     let kidnappings = sess
         .legs
         .windows(2)
-        .map(|l| (round6(sess.stamp0 + l[0].end()), round6(sess.stamp0 + l[1].start())))
+        .map(|l| {
+            (
+                round6(sess.stamp0 + l[0].end()),
+                round6(sess.stamp0 + l[1].start()),
+            )
+        })
         .collect();
     let dark_intervals = if opts.sensor.darkness {
-        sess.dark.iter().map(|(a, b)| (round6(sess.stamp0 + a), round6(sess.stamp0 + b))).collect()
+        sess.dark
+            .iter()
+            .map(|(a, b)| (round6(sess.stamp0 + a), round6(sess.stamp0 + b)))
+            .collect()
     } else {
         vec![]
     };
@@ -307,9 +373,15 @@ fn scenario_json(
         dark_intervals,
         kidnappings,
         steps,
-        landmarks: sc.scene.landmarks.iter().map(|l| (l.name.as_str(), l.p)).collect(),
+        landmarks: sc
+            .scene
+            .landmarks
+            .iter()
+            .map(|l| (l.name.as_str(), l.p))
+            .collect(),
     };
-    serde_json::to_string_pretty(&j).map_err(|e| Error::Invalid(format!("cannot serialise scenario.json: {e}")))
+    serde_json::to_string_pretty(&j)
+        .map_err(|e| Error::Invalid(format!("cannot serialise scenario.json: {e}")))
 }
 
 /// Writes via a temporary file and a rename, like homing's own writers.

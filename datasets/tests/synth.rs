@@ -19,7 +19,11 @@ fn opts(out: &Path, seed: u64, clean: bool, max_frames: Option<usize>) -> GenOpt
         out: out.to_path_buf(),
         small: true,
         seed,
-        sensor: if clean { SensorOptions::clean() } else { SensorOptions::realistic() },
+        sensor: if clean {
+            SensorOptions::clean()
+        } else {
+            SensorOptions::realistic()
+        },
         max_frames,
     }
 }
@@ -51,7 +55,10 @@ fn plane_depth_matches_analytic_value_within_quantisation() {
             let ray = rot * Vector3::new((x as f64 - k.cx) / k.fx, (y as f64 - k.cy) / k.fy, 1.0);
             let z = (3.0 - pose.translation.vector.y) / ray.y;
             let got = back.get(x, y) as f64;
-            assert!((got - z).abs() <= 0.5 / DEPTH_SCALE + 1e-6, "pixel ({x},{y}): {got} vs {z}");
+            assert!(
+                (got - z).abs() <= 0.5 / DEPTH_SCALE + 1e-6,
+                "pixel ({x},{y}): {got} vs {z}"
+            );
         }
     }
 }
@@ -72,15 +79,36 @@ fn poster_corners_project_onto_their_rendered_border() {
         let w2c = gt[i].pose.inverse();
         for lm in &sc.scene.landmarks {
             let pc = w2c * Point3::from(lm.p);
-            let Some((u, v)) = k.project(&pc) else { continue };
+            let Some((u, v)) = k.project(&pc) else {
+                continue;
+            };
             if !(8.0..312.0).contains(&u) || !(8.0..232.0).contains(&v) {
                 continue;
             }
             // Step 2 px from the corner towards the poster's centre: inside the dark border.
-            let corner = lm.name.rsplit("corner").next().unwrap().parse::<usize>().unwrap();
-            let others: Vec<_> = sc.scene.landmarks.iter().filter(|o| o.name.rsplit_once('/').map(|x| x.0) == lm.name.rsplit_once('/').map(|x| x.0)).collect();
-            let centre: Vector3<f64> = others.iter().map(|o| Vector3::from(o.p)).sum::<Vector3<f64>>() / others.len() as f64;
-            let Some((cu, cv)) = k.project(&(w2c * Point3::from(centre))) else { continue };
+            let corner = lm
+                .name
+                .rsplit("corner")
+                .next()
+                .unwrap()
+                .parse::<usize>()
+                .unwrap();
+            let others: Vec<_> = sc
+                .scene
+                .landmarks
+                .iter()
+                .filter(|o| {
+                    o.name.rsplit_once('/').map(|x| x.0) == lm.name.rsplit_once('/').map(|x| x.0)
+                })
+                .collect();
+            let centre: Vector3<f64> = others
+                .iter()
+                .map(|o| Vector3::from(o.p))
+                .sum::<Vector3<f64>>()
+                / others.len() as f64;
+            let Some((cu, cv)) = k.project(&(w2c * Point3::from(centre))) else {
+                continue;
+            };
             let (du, dv) = ((cu - u).signum() * 2.0, (cv - v).signum() * 2.0);
             let (x, y) = ((u + du).round() as u32, (v + dv).round() as u32);
             let z = depth.get(x, y) as f64;
@@ -88,7 +116,11 @@ fn poster_corners_project_onto_their_rendered_border() {
                 continue; // occluded (e.g. by furniture)
             }
             let px = f.rgb.get_pixel(x, y).0;
-            assert!(px.iter().all(|&c| c < 40), "frame {i} {} corner {corner}: colour {px:?} at ({x},{y})", lm.name);
+            assert!(
+                px.iter().all(|&c| c < 40),
+                "frame {i} {} corner {corner}: colour {px:?} at ({x},{y})",
+                lm.name
+            );
             checked += 1;
         }
     }
@@ -101,7 +133,10 @@ fn files(dir: &Path) -> BTreeMap<String, Vec<u8>> {
         for e in std::fs::read_dir(dir.join(sub)).unwrap() {
             let p = e.unwrap().path();
             if p.is_file() {
-                out.insert(p.strip_prefix(dir).unwrap().display().to_string(), std::fs::read(&p).unwrap());
+                out.insert(
+                    p.strip_prefix(dir).unwrap().display().to_string(),
+                    std::fs::read(&p).unwrap(),
+                );
             }
         }
     }
@@ -119,16 +154,30 @@ fn same_seed_same_bytes_other_seed_other_textures() {
     assert_eq!(fa, fb);
     // Another seed: other textures (clean, so noise cannot be the difference).
     let (c, d) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
-    generate(&scenarios::build("desk", 5).unwrap(), &opts(c.path(), 5, true, Some(1))).unwrap();
-    generate(&scenarios::build("desk", 6).unwrap(), &opts(d.path(), 6, true, Some(1))).unwrap();
-    let ic = image::open(c.path().join(&read_first(c.path()))).unwrap().to_rgb8();
-    let id = image::open(d.path().join(&read_first(d.path()))).unwrap().to_rgb8();
+    generate(
+        &scenarios::build("desk", 5).unwrap(),
+        &opts(c.path(), 5, true, Some(1)),
+    )
+    .unwrap();
+    generate(
+        &scenarios::build("desk", 6).unwrap(),
+        &opts(d.path(), 6, true, Some(1)),
+    )
+    .unwrap();
+    let ic = image::open(c.path().join(read_first(c.path())))
+        .unwrap()
+        .to_rgb8();
+    let id = image::open(d.path().join(read_first(d.path())))
+        .unwrap()
+        .to_rgb8();
     let differ = ic.pixels().zip(id.pixels()).filter(|(p, q)| p != q).count();
     assert!(differ > 320 * 240 / 2, "only {differ} pixels differ");
 }
 
 fn read_first(dir: &Path) -> String {
-    homing::io::tum::read_list(&dir.join("rgb.txt")).unwrap()[0].file.clone()
+    homing::io::tum::read_list(&dir.join("rgb.txt")).unwrap()[0]
+        .file
+        .clone()
 }
 
 #[test]
@@ -154,10 +203,14 @@ fn written_folder_reads_back_as_tum() {
     let f = seq.load(3).unwrap();
     let d = f.depth.unwrap();
     let valid = d.data.iter().filter(|&&z| z > 0.0).count();
-    assert!(valid > d.data.len() * 8 / 10, "only {valid} valid depth pixels");
+    assert!(
+        valid > d.data.len() * 8 / 10,
+        "only {valid} valid depth pixels"
+    );
     let steps = j["steps"].as_array().unwrap();
     assert_eq!(steps[0]["t_start"].as_f64().unwrap(), rgb[0].t);
-    let cam: toml::Value = toml::from_str(&std::fs::read_to_string(dir.path().join("camera.toml")).unwrap()).unwrap();
+    let cam: toml::Value =
+        toml::from_str(&std::fs::read_to_string(dir.path().join("camera.toml")).unwrap()).unwrap();
     assert_eq!(cam["camera"]["width"].as_integer(), Some(320));
     assert_eq!(cam["camera"]["fx"].as_float(), Some(262.5));
 }
@@ -168,7 +221,11 @@ fn check_steps(name: &str, small: bool) {
     for sess in &sc.sessions {
         let frames = plan_frames(sess, stride, &SensorOptions::realistic(), 1);
         let ranges = step_ranges(sess, &frames);
-        assert_eq!(ranges.len(), sess.steps.len(), "{name}: a step has no frames");
+        assert_eq!(
+            ranges.len(),
+            sess.steps.len(),
+            "{name}: a step has no frames"
+        );
         let mut next = 0;
         for (i, a, b) in &ranges {
             assert_eq!(*a, next, "{name} step {i}: gap or overlap");
@@ -179,7 +236,11 @@ fn check_steps(name: &str, small: bool) {
         for w in frames.windows(2) {
             assert!(w[1].t_rgb > w[0].t_rgb);
         }
-        eprintln!("{name} {} small={small}: {} frames", sess.name, frames.len());
+        eprintln!(
+            "{name} {} small={small}: {} frames",
+            sess.name,
+            frames.len()
+        );
         // The case study is the paper's whole story (15 steps, two sessions): allow more.
         let limit = match (name, small) {
             ("case-study", true) => 600,
@@ -187,7 +248,12 @@ fn check_steps(name: &str, small: bool) {
             (_, true) => 400,
             (_, false) => 1500,
         };
-        assert!(frames.len() <= limit, "{name} {}: {} frames", sess.name, frames.len());
+        assert!(
+            frames.len() <= limit,
+            "{name} {}: {} frames",
+            sess.name,
+            frames.len()
+        );
     }
 }
 
@@ -230,7 +296,12 @@ fn case_study_sessions_and_expected_states() {
         let mut next = 0;
         for (st, k) in arr.iter().zip(steps) {
             assert_eq!(st["step"].as_u64().unwrap() as usize, k);
-            let exp: Vec<&str> = st["expected_states"].as_array().unwrap().iter().map(|v| v.as_str().unwrap()).collect();
+            let exp: Vec<&str> = st["expected_states"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|v| v.as_str().unwrap())
+                .collect();
             assert_eq!(exp, table[k], "step {k}");
             assert_eq!(st["first_frame"].as_u64().unwrap(), next);
             next = st["last_frame"].as_u64().unwrap() + 1;
@@ -245,9 +316,12 @@ fn case_study_sessions_and_expected_states() {
     assert!(rgb[k10].t - rgb[k10 - 1].t > 3.0);
     // The dark step is dark, the others are not.
     let k4 = &s1["steps"][4];
-    let mid = ((k4["first_frame"].as_u64().unwrap() + k4["last_frame"].as_u64().unwrap()) / 2) as usize;
+    let mid =
+        ((k4["first_frame"].as_u64().unwrap() + k4["last_frame"].as_u64().unwrap()) / 2) as usize;
     let mean = |i: usize| {
-        let img = image::open(dir.path().join("session1").join(&rgb[i].file)).unwrap().to_luma8();
+        let img = image::open(dir.path().join("session1").join(&rgb[i].file))
+            .unwrap()
+            .to_luma8();
         img.pixels().map(|p| p.0[0] as f64).sum::<f64>() / (img.width() * img.height()) as f64
     };
     assert!(mean(mid) < 15.0, "dark frame mean {}", mean(mid));
@@ -255,14 +329,22 @@ fn case_study_sessions_and_expected_states() {
     // Same world frame in both sessions: session 2 starts inside Room 2.
     let gt2 = read_trajectory(&dir.path().join("session2/groundtruth.txt")).unwrap();
     let p = gt2[0].pose.translation.vector;
-    assert!((10.5..14.5).contains(&p.x) && (6.2..10.2).contains(&p.y), "session 2 starts at {p:?}");
+    assert!(
+        (10.5..14.5).contains(&p.x) && (6.2..10.2).contains(&p.y),
+        "session 2 starts at {p:?}"
+    );
 }
 
 /// Share of pixels whose colours are equal in two renders.
 fn equal_share(sc: &Scene, a: &Isometry3<f64>, b: &Isometry3<f64>) -> f64 {
     let k = Intrinsics::kinect(320, 240);
     let (ra, rb) = (render(sc, &k, a), render(sc, &k, b));
-    let eq = ra.rgb.chunks(3).zip(rb.rgb.chunks(3)).filter(|(p, q)| p.iter().zip(q.iter()).all(|(x, y)| (x - y).abs() < 2e-3)).count();
+    let eq = ra
+        .rgb
+        .chunks(3)
+        .zip(rb.rgb.chunks(3))
+        .filter(|(p, q)| p.iter().zip(q.iter()).all(|(x, y)| (x - y).abs() < 2e-3))
+        .count();
     eq as f64 / (320.0 * 240.0)
 }
 
@@ -279,7 +361,10 @@ fn look_alike_places_render_alike() {
     assert!(other < 0.2, "B view and room-1 door view share {other}");
     // Aliasing scenario: room B is room A rotated by 180 degrees about (7.55, 2.0).
     let sc = scenarios::build("aliasing", 1).unwrap();
-    let a = Isometry3::from_parts(Translation3::new(2.0, 1.5, 1.3), look_rotation(2.5, -0.1, 0.0));
+    let a = Isometry3::from_parts(
+        Translation3::new(2.0, 1.5, 1.3),
+        look_rotation(2.5, -0.1, 0.0),
+    );
     let b = Isometry3::from_parts(
         Translation3::new(2.0 * 7.55 - 2.0, 2.0 * 2.0 - 1.5, 1.3),
         look_rotation(2.5 + std::f64::consts::PI, -0.1, 0.0),
