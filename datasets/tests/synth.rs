@@ -372,3 +372,32 @@ fn look_alike_places_render_alike() {
     let same = equal_share(&sc.scene, &a, &b);
     assert!(same > 0.98, "rooms A and B share only {same}");
 }
+
+#[test]
+fn camera_toml_is_picked_up_by_homing() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scenarios::build("desk", 1).unwrap();
+    generate(&sc, &opts(dir.path(), 1, true, Some(1))).unwrap();
+    let cfg = homing::config::Config::load(&dir.path().join("camera.toml")).unwrap();
+    let cam = cfg.camera.expect("camera.toml has a [camera] table");
+    assert_eq!((cam.width, cam.height), (320, 240));
+    assert_eq!((cam.fx, cam.cx, cam.cy), (262.5, 159.5, 119.5));
+    assert_eq!(cam.k1, 0.0);
+    assert_eq!(cam.depth_scale, DEPTH_SCALE);
+    assert_eq!(cam.fps, 15.0);
+}
+
+#[test]
+fn bad_cli_input_is_an_error_not_a_panic() {
+    use clap::Parser;
+    use homing_datasets::cli::{Cli, run};
+    let parse = |args: &[&str]| Cli::try_parse_from(std::iter::once("homing-datasets").chain(args.iter().copied()));
+    assert!(parse(&["synth", "desk"]).is_err()); // --out missing
+    assert!(parse(&["synth", "desk", "--out", "x", "--seed", "-3"]).is_err());
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().to_str().unwrap();
+    assert!(run(parse(&["synth", "no-such-scenario", "--out", out]).unwrap()).is_err());
+    assert!(run(parse(&["synth", "desk", "--out", out, "--max-range", "0"]).unwrap()).is_err());
+    assert!(run(parse(&["contact-sheet", out, "--out", "x.png"]).unwrap()).is_err()); // no rgb.txt
+    assert!(run(parse(&["contact-sheet", out, "--every", "0", "--out", "x.png"]).unwrap()).is_err());
+}
