@@ -45,3 +45,27 @@ fn orb_finds_many_well_spread_keypoints() {
         }
     }
 }
+
+/// Survey of a written folder: `HOMING_ORB_DIR=... cargo test -p homing-datasets --test orb
+/// -- --ignored --nocapture` prints ORB counts of every 15th frame (lit frames should all be
+/// well covered; only dark steps may be empty).
+#[test]
+#[ignore]
+fn orb_survey_of_folder() {
+    let Ok(dir) = std::env::var("HOMING_ORB_DIR") else {
+        return;
+    };
+    let dir = std::path::PathBuf::from(dir);
+    let list = homing::io::tum::read_list(&dir.join("rgb.txt")).unwrap();
+    let mut worst = (usize::MAX, 0);
+    for (i, e) in list.iter().enumerate().step_by(15) {
+        let img = image::open(dir.join(&e.file)).unwrap().to_rgb8();
+        let (n, grid) = orb_stats(&img);
+        let empty = grid.iter().flatten().filter(|&&c| c == 0).count();
+        println!("frame {i}: {n} keypoints, {empty} empty cells of 16");
+        if n < worst.0 {
+            worst = (n, i);
+        }
+    }
+    println!("fewest: {} keypoints at frame {}", worst.0, worst.1);
+}
