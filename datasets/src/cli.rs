@@ -69,7 +69,7 @@ pub struct SynthArgs {
     /// Keep the lights on in the scenario's dark stretches.
     #[arg(long)]
     pub no_darkness: bool,
-    /// Average three renders over a 10 ms exposure (3x slower).
+    /// Average five renders over a 20 ms exposure (5x slower).
     #[arg(long)]
     pub motion_blur: bool,
     /// Maximum valid depth in metres.

@@ -28,7 +28,7 @@ pub struct SensorOptions {
     /// Additive Gaussian noise on the 8-bit colour image (sigma in grey levels).
     pub image_noise: bool,
     pub image_noise_sigma: f64,
-    /// Average of 3 renders over the exposure time (5 ms before to 5 ms after the stamp).
+    /// Average of 5 renders over a 20 ms exposure centred on the stamp.
     pub motion_blur: bool,
     /// Depth stamps differ from colour stamps by 3–12 ms, and colour stamps jitter by
     /// +-1 ms, so colour and depth must be associated like real TUM data.

@@ -23,6 +23,8 @@ use crate::texture::mix;
 pub const FPS: f64 = 30.0;
 /// Depth PNG units per metre (TUM).
 pub const DEPTH_SCALE: f64 = 5000.0;
+/// Exposure time simulated by `--motion-blur` (an indoor Kinect exposes ~10-30 ms).
+pub const BLUR_EXPOSURE: f64 = 0.02;
 /// Exposure gain while the lights are off.
 pub const DARK_GAIN: f32 = 0.02;
 
@@ -222,10 +224,15 @@ pub fn generate(sc: &Scenario, opts: &GenOptions) -> Result<Stats> {
             let mut r = render(&sc.scene, &k, &f.pose);
             if opts.sensor.motion_blur {
                 let leg = &sess.legs[f.leg];
-                let extra: Vec<RenderOut> = [-0.005, 0.005]
-                    .iter()
-                    .map(|d| render(&sc.scene, &k, &leg.pose(f.t + d)))
-                    .collect();
+                let extra: Vec<RenderOut> = [
+                    -0.5 * BLUR_EXPOSURE,
+                    -0.25 * BLUR_EXPOSURE,
+                    0.25 * BLUR_EXPOSURE,
+                    0.5 * BLUR_EXPOSURE,
+                ]
+                .iter()
+                .map(|d| render(&sc.scene, &k, &leg.pose(f.t + d)))
+                .collect();
                 average(&mut r, &extra);
             }
             let gain = gain_at(sess, f.t, &opts.sensor);
