@@ -16,3 +16,6 @@ pub mod preprocess;
 pub mod aligner;
 pub mod map;
 pub mod tracker;
+pub mod control;
+pub mod initializer;
+pub mod map_merger;

@@ -2,8 +2,6 @@
 //! outputs written. What runs inside a step is decided by the controller; the components
 //! (initializer, tracker, map merger, loop closing) are wired in by their own modules.
 //!
-//! Without an initializer the controller can never leave Init, so a run reports every frame in
-//! Init and ends in Final at the end of data: exactly what the state machine prescribes.
 
 use crate::config::{Config, resolve_camera};
 use crate::error::{Error, Result};
@@ -11,9 +9,18 @@ use crate::eval::{self, Alignment, RpeUnit};
 use crate::io::perturb::{PerturbationSpec, PerturbedSequence};
 use crate::io::tum::{FrameSource, StampedPose, TumSequence};
 use crate::output::{
-    ClosureRow, Flags, RunOutputs, StateRow, Summary, Timing, Transition, describe_camera,
+    ClosureRow, RunOutputs, StateRow, Summary, Timing, Transition, describe_camera,
 };
+use crate::control::StateMachine;
+use crate::map::KfId;
+use crate::optim::Intrinsics;
+use crate::preprocess::Preprocessor;
+use nalgebra::Isometry3;
 use std::path::PathBuf;
+
+/// RGB-D observations are optimised like a stereo pair with this virtual baseline
+/// (ORB-SLAM's TUM setting, bf = 40 ≈ fx · 0.08 m).
+pub const VIRTUAL_BASELINE_M: f64 = 0.08;
 use std::time::Instant;
 
 /// What `homing run` is asked to do.
@@ -60,12 +67,21 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
     let perturbed = PerturbedSequence::new(&seq, &spec)?;
     let out = RunOutputs::create(&opts.out)?;
 
+    let intr = Intrinsics {
+        fx: camera.fx,
+        fy: camera.fy,
+        cx: camera.cx,
+        cy: camera.cy,
+        bf: camera.fx * VIRTUAL_BASELINE_M,
+    };
+    let mut pre = Preprocessor::new(&camera, &config.orb)?;
+    let mut machine = StateMachine::new(&config, intr, camera.width, camera.height);
     let mut timing = Timing::default();
     let mut states: Vec<StateRow> = Vec::new();
-    let trajectory: Vec<StampedPose> = Vec::new();
-    let keyframes: Vec<(StampedPose, u32)> = Vec::new();
+    // Frame poses are kept relative to their reference keyframe, so that the final trajectory
+    // follows the keyframes' optimised poses (as ORB-SLAM does).
+    let mut relative: Vec<(f64, u32, KfId, Isometry3<f64>)> = Vec::new();
     let closures: Vec<ClosureRow> = Vec::new();
-    let mut state = "Init".to_string();
     let mut failure = None;
     let n = perturbed.len();
     let mut frames = perturbed.frames();
@@ -82,34 +98,50 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
             }
         };
         delivered += 1;
-        let transition = states.is_empty().then(|| Transition {
-            from: "(start)".into(),
-            trigger: "start".into(),
-        });
-        states.push(StateRow {
-            frame: frame.index,
-            t: frame.t,
-            state: state.clone(),
-            transition,
-            flags: Flags::default(),
-        });
+        let t_frame = Instant::now();
+        let m = match timing.time("preprocess", || pre.process(&frame)) {
+            Ok(m) => m,
+            Err(e) => {
+                failure = Some(e);
+                break;
+            }
+        };
+        let out = machine.step(&m, &mut timing);
+        timing.record("frame", t_frame.elapsed().as_secs_f64() * 1e3);
+        if let Some((pose_cw, map, kf)) = out.pose {
+            let kf_pose = machine.maps[map as usize].keyframes[&kf].pose_cw;
+            relative.push((frame.t, map, kf, pose_cw * kf_pose.inverse()));
+        }
+        let transition = match (states.is_empty(), out.transition) {
+            (_, Some(t)) => Some(t),
+            (true, None) => Some(Transition { from: "(start)".into(), trigger: "start".into() }),
+            (false, None) => None,
+        };
+        states.push(StateRow { frame: frame.index, t: frame.t, state: out.state.clone(), transition, flags: out.flags });
         if delivered % 100 == 0 {
-            tracing::info!("frame {delivered}/{n} state {state}");
+            tracing::info!("frame {delivered}/{n} state {} keyframes {}", out.state, machine.maps.iter().map(|m| m.keyframes.len()).sum::<usize>());
         }
     }
     // End of data (or a fatal input error): Interruptible → Final.
+    let trigger = if failure.is_some() { "input_error" } else { "end_of_data" };
+    let fin = machine.finish(trigger);
     if let Some(last) = states.last() {
         let (frame, t) = (last.frame, last.t);
-        let trigger = if failure.is_some() { "input_error" } else { "end_of_data" };
-        states.push(StateRow {
-            frame,
-            t,
-            state: "Final".into(),
-            transition: Some(Transition { from: state.clone(), trigger: trigger.into() }),
-            flags: Flags::default(),
-        });
+        states.push(StateRow { frame, t, state: fin.state.clone(), transition: fin.transition, flags: fin.flags });
     }
-    state = "Final".into();
+    let state = fin.state;
+    let trajectory: Vec<StampedPose> = relative
+        .iter()
+        .map(|(t, map, kf, rel)| {
+            let kf_pose = machine.maps[*map as usize].keyframes[kf].pose_cw;
+            StampedPose { t: *t, pose: (rel * kf_pose).inverse() }
+        })
+        .collect();
+    let keyframes: Vec<(StampedPose, u32)> = machine
+        .maps
+        .iter()
+        .flat_map(|m| m.keyframes.values().map(move |k| (StampedPose { t: k.t, pose: k.pose_cw.inverse() }, m.id)))
+        .collect();
 
     let evaluation = if opts.eval { evaluate(&seq, &trajectory, &spec)? } else { None };
     let summary = Summary {
@@ -120,7 +152,7 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
         frames: delivered,
         frames_with_pose: trajectory.len(),
         keyframes: keyframes.len(),
-        maps: 0,
+        maps: machine.maps.len(),
         closures_accepted: closures.iter().filter(|c| c.verdict == "accepted").count(),
         closures_rejected: closures.iter().filter(|c| c.verdict.starts_with("rejected")).count(),
         final_state: state,

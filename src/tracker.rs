@@ -104,7 +104,11 @@ impl Tracker {
         }
         let reference_kf = reference_keyframe(map, &matches);
         if let Some(last) = self.last_pose {
-            self.velocity = Some(pose * last.inverse());
+            // Renormalised: the motion model composes poses every frame and would amplify any
+            // rounding drift of the rotation geometrically.
+            let mut v = pose * last.inverse();
+            v.rotation.renormalize();
+            self.velocity = Some(v);
         }
         self.last_pose = Some(pose);
         self.last_matches = matches.iter().enumerate().filter_map(|(i, p)| p.map(|p| (i, p))).collect();

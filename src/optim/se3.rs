@@ -113,8 +113,13 @@ pub fn log(t: &Isometry3<f64>) -> Vector6<f64> {
 }
 
 /// Applies the left update `exp(δ) · T`.
+///
+/// The rotation is renormalised: repeated updates (and a tracker's motion model composing them
+/// frame after frame) otherwise let rounding drift grow until poses are no longer rigid.
 pub fn retract(t: &Isometry3<f64>, delta: &Vector6<f64>) -> Isometry3<f64> {
-    exp(delta) * t
+    let mut out = exp(delta) * t;
+    out.rotation.renormalize();
+    out
 }
 
 #[cfg(test)]

@@ -1,0 +1,137 @@
+//! The modal controller: the SLAM state machine of the paper (section V). Components compute and
+//! report flags; only this module decides what runs on each measurement.
+//!
+//! Implemented so far: Init → [initialized] → Idle → [able_to_track] → Core (region Mapping)
+//! → [!able_to_track] → Idle, and Interruptible → Final at the end of data. Relocalize,
+//! Localized and CorruptedMap arrive with the multi-map atlas.
+
+use crate::config::Config;
+use crate::initializer::Initializer;
+use crate::map::{KfId, Map};
+use crate::map_merger::MapMerger;
+use crate::optim::Intrinsics;
+use crate::output::{Flags, Timing, Transition};
+use crate::preprocess::Measurement;
+use crate::tracker::Tracker;
+use nalgebra::Isometry3;
+
+/// The states of the machine.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum State {
+    Init,
+    Idle,
+    /// Orthogonal regions Mapping and Relocalize; shown as "Mapping" while the atlas has a
+    /// single map (nothing to relocalize against).
+    Core,
+    Final,
+}
+
+/// What one step produced.
+#[derive(Debug, Clone)]
+pub struct StepOutput {
+    pub state: String,
+    pub transition: Option<Transition>,
+    pub flags: Flags,
+    /// World-to-camera pose when the frame was tracked, with the reference keyframe.
+    pub pose: Option<(Isometry3<f64>, u32, KfId)>,
+}
+
+pub struct StateMachine {
+    pub state: State,
+    initializer: Initializer,
+    tracker: Tracker,
+    merger: MapMerger,
+    /// The atlas: one map per tracking session.
+    pub maps: Vec<Map>,
+    flags: Flags,
+}
+
+impl StateMachine {
+    pub fn new(config: &Config, intr: Intrinsics, width: u32, height: u32) -> Self {
+        let (sf, nl) = (config.orb.scale_factor, config.orb.n_levels);
+        Self {
+            state: State::Init,
+            initializer: Initializer {
+                min_points: config.mapping.min_init_depth_points as usize,
+                max_depth: config.mapping.max_point_depth_m,
+                intr,
+                scale_factor: sf,
+                n_levels: nl,
+            },
+            tracker: Tracker::new(&config.tracker, intr, width, height, sf, nl),
+            merger: MapMerger::new(&config.mapping, intr, width, height, sf, nl),
+            maps: Vec::new(),
+            flags: Flags::default(),
+        }
+    }
+
+    pub fn state_name(&self) -> String {
+        match self.state {
+            State::Init => "Init".into(),
+            State::Idle => "Idle".into(),
+            State::Core if self.maps.len() > 1 => "Core(M&R)".into(),
+            State::Core => "Mapping".into(),
+            State::Final => "Final".into(),
+        }
+    }
+
+    fn go(&mut self, to: State, trigger: &str) -> Option<Transition> {
+        let from = self.state_name();
+        self.state = to;
+        tracing::debug!("{from} -> {} on {trigger}", self.state_name());
+        Some(Transition { from, trigger: trigger.into() })
+    }
+
+    /// Processes one measurement in the current state.
+    pub fn step(&mut self, m: &Measurement, timing: &mut Timing) -> StepOutput {
+        let mut transition = None;
+        let mut pose = None;
+        match self.state {
+            State::Final => {}
+            State::Init => {
+                let id = self.maps.len() as u32;
+                if let Some((map, kf)) = timing.time("initialize", || self.initializer.try_initialize(m, id)) {
+                    let matches = map.keyframes[&kf].points.clone();
+                    self.tracker.reset(Isometry3::identity(), &matches, kf);
+                    self.merger.started(m.frame);
+                    self.maps.push(map);
+                    self.flags.initialized = true;
+                    pose = Some((Isometry3::identity(), id, kf));
+                    transition = self.go(State::Idle, "initialized");
+                }
+            }
+            State::Idle | State::Core => {
+                let map_id = self.maps.len() - 1;
+                let map = &self.maps[map_id];
+                let track = timing.time("track", || self.tracker.track(m, map));
+                self.flags.able_to_track = track.able_to_track;
+                if track.able_to_track {
+                    if self.state == State::Idle {
+                        transition = self.go(State::Core, "able_to_track");
+                    }
+                    let map = &mut self.maps[map_id];
+                    // Mapping region: the map merger grows the local map.
+                    if self.merger.need_keyframe(map, m, &track) {
+                        let r = timing.time("map", || self.merger.insert_keyframe(map, m, &track));
+                        tracing::debug!(
+                            "keyframe {} at frame {}: {} new points, {} fused, {} culled, BA {:.1} -> {:.1} ({} outliers)",
+                            r.keyframe, m.frame, r.new_points, r.fused, r.culled, r.ba_initial_cost, r.ba_final_cost, r.ba_outliers
+                        );
+                        self.tracker.reference_kf = Some(r.keyframe);
+                    }
+                    let kf = track.reference_kf.or(self.tracker.reference_kf).unwrap_or(0);
+                    pose = Some((track.pose_cw, map_id as u32, kf));
+                } else if self.state == State::Core {
+                    transition = self.go(State::Idle, "!able_to_track");
+                }
+            }
+        }
+        StepOutput { state: self.state_name(), transition, flags: self.flags, pose }
+    }
+
+    /// Interruptible → Final (end of data or user stop).
+    pub fn finish(&mut self, trigger: &str) -> StepOutput {
+        let transition = self.go(State::Final, trigger);
+        StepOutput { state: self.state_name(), transition, flags: self.flags, pose: None }
+    }
+}

@@ -1,0 +1,288 @@
+//! Map merger (paper Table I): tracked frame → augmented local map. Keyframe decision
+//! (ORB-SLAM's RGB-D criteria), map points from depth back-projection, point fusion with the
+//! covisible keyframes, culling, and local bundle adjustment (optim::local_ba, faer).
+
+use crate::aligner::backproject;
+use crate::config::MappingConfig;
+use crate::map::{KfId, Map, PointId};
+use crate::optim::{self, BaCamera, BaObservation, BaParams, BaPoint, BaProblem, Intrinsics, Observation, octave_information};
+use crate::preprocess::{Measurement, hamming};
+use crate::tracker::TrackResult;
+use nalgebra::Point3;
+use std::collections::{BTreeMap, BTreeSet};
+
+pub struct MapMerger {
+    cfg: MappingConfig,
+    intr: Intrinsics,
+    width: f64,
+    height: f64,
+    scale_factor: f64,
+    n_levels: u32,
+    last_kf_frame: Option<usize>,
+    /// Points created recently, checked by culling: (point, keyframe that created it).
+    recent: Vec<(PointId, KfId)>,
+}
+
+/// What one keyframe insertion did (for logs and timing).
+#[derive(Debug, Clone, Default)]
+pub struct MergeReport {
+    pub keyframe: KfId,
+    pub new_points: usize,
+    pub fused: usize,
+    pub culled: usize,
+    pub ba_initial_cost: f64,
+    pub ba_final_cost: f64,
+    pub ba_outliers: usize,
+}
+
+impl MapMerger {
+    pub fn new(cfg: &MappingConfig, intr: Intrinsics, width: u32, height: u32, scale_factor: f64, n_levels: u32) -> Self {
+        Self {
+            cfg: cfg.clone(),
+            intr,
+            width: width as f64,
+            height: height as f64,
+            scale_factor,
+            n_levels,
+            last_kf_frame: None,
+            recent: Vec::new(),
+        }
+    }
+
+    /// A new map started at keyframe `kf` of frame `frame`.
+    pub fn started(&mut self, frame: usize) {
+        self.last_kf_frame = Some(frame);
+        self.recent.clear();
+    }
+
+    /// ORB-SLAM's RGB-D keyframe decision: insert when the frame tracks clearly fewer points than
+    /// its reference keyframe, or when few close points are tracked while many could be created,
+    /// or when too many frames passed. Always requires some tracked points (> 15).
+    pub fn need_keyframe(&self, map: &Map, m: &Measurement, track: &TrackResult) -> bool {
+        let Some(ref_kf) = track.reference_kf.and_then(|k| map.keyframes.get(&k)) else { return false };
+        let min_obs = if map.keyframes.len() <= 2 { 2 } else { 3 };
+        let ref_matches = ref_kf
+            .points
+            .iter()
+            .flatten()
+            .filter(|p| map.points.get(p).is_some_and(|p| p.observations.len() >= min_obs))
+            .count();
+        let close = |i: usize| m.depth[i] > 0.0 && (m.depth[i] as f64) < self.cfg.max_point_depth_m;
+        let tracked_close = (0..m.len()).filter(|&i| close(i) && track.matches[i].is_some()).count();
+        let untracked_close = (0..m.len()).filter(|&i| close(i) && track.matches[i].is_none()).count();
+        let need_close = tracked_close < 100 && untracked_close > 70;
+        let ratio = if map.keyframes.len() < 2 { 0.4 } else { self.cfg.keyframe_tracked_ratio };
+        let since = self.last_kf_frame.map_or(usize::MAX, |f| m.frame.saturating_sub(f));
+        let weak = (track.n_inliers as f64) < ratio * ref_matches as f64 || need_close;
+        (since >= self.cfg.keyframe_max_interval as usize || weak) && track.n_inliers > 15
+    }
+
+    /// Inserts the frame as a keyframe and runs local mapping on it.
+    pub fn insert_keyframe(&mut self, map: &mut Map, m: &Measurement, track: &TrackResult) -> MergeReport {
+        let kf = map.add_keyframe(m, track.pose_cw);
+        let mut report = MergeReport { keyframe: kf, ..Default::default() };
+        for (i, p) in track.matches.iter().enumerate() {
+            if let Some(p) = p {
+                if map.points.contains_key(p) {
+                    map.observe(kf, i, *p);
+                }
+            }
+        }
+        // New points from depth for unmatched keypoints closer than the depth limit.
+        let pose_wc = track.pose_cw.inverse();
+        for i in 0..m.len() {
+            let d = m.depth[i] as f64;
+            if d <= 0.0 || d > self.cfg.max_point_depth_m || map.keyframes[&kf].points[i].is_some() {
+                continue;
+            }
+            let pw = (pose_wc * Point3::from(backproject(&self.intr, &m.keypoints[i].un, d))).coords;
+            let id = map.add_point(kf, i, pw, self.scale_factor, self.n_levels);
+            self.recent.push((id, kf));
+            report.new_points += 1;
+        }
+        for pid in map.keyframes[&kf].points.iter().flatten().copied().collect::<Vec<_>>() {
+            map.update_point(pid, self.scale_factor, self.n_levels);
+        }
+        map.update_covisibility(kf);
+        report.culled = self.cull(map, kf);
+        report.fused = self.fuse(map, kf);
+        map.update_covisibility(kf);
+        self.local_ba(map, kf, &mut report);
+        self.last_kf_frame = Some(m.frame);
+        report
+    }
+
+    /// Removes recent points that too few keyframes confirmed (ORB-SLAM's culling, by
+    /// observation count: a point must be seen by 3 keyframes within 2 keyframes of its birth).
+    fn cull(&mut self, map: &mut Map, current: KfId) -> usize {
+        let mut culled = 0;
+        let mut keep = Vec::new();
+        for &(pid, born) in &self.recent {
+            let Some(p) = map.points.get(&pid) else { continue };
+            let age = current.saturating_sub(born);
+            if age >= 2 && p.observations.len() < 3 {
+                map.remove_point(pid);
+                culled += 1;
+            } else if age < 3 {
+                keep.push((pid, born));
+            }
+        }
+        self.recent = keep;
+        culled
+    }
+
+    /// Projects the points of the best covisible keyframes into the new keyframe: a matching
+    /// keypoint that has no point gets an observation; one that has another point merges the two
+    /// (the one with fewer observations is replaced). Returns the number of fusions/additions.
+    fn fuse(&self, map: &mut Map, kf: KfId) -> usize {
+        let neighbours = map.keyframes[&kf].best_covisible(10);
+        let mut cands: BTreeSet<PointId> = BTreeSet::new();
+        for n in &neighbours {
+            cands.extend(map.keyframes[n].points.iter().flatten().copied());
+        }
+        let mut fused = 0;
+        for pid in cands {
+            let (pose, center) = {
+                let k = &map.keyframes[&kf];
+                (k.pose_cw, k.center())
+            };
+            let Some(p) = map.points.get(&pid) else { continue };
+            if p.observations.contains_key(&kf) {
+                continue;
+            }
+            let pc = pose * Point3::from(p.position);
+            let Some(uv) = self.intr.project(&pc.coords) else { continue };
+            if uv.x < 0.0 || uv.y < 0.0 || uv.x >= self.width || uv.y >= self.height {
+                continue;
+            }
+            let dist = (p.position - center).norm();
+            if dist < 0.8 * p.min_distance || dist > 1.2 * p.max_distance {
+                continue;
+            }
+            let level = ((p.max_distance / dist).ln() / self.scale_factor.ln()).ceil().clamp(0.0, self.n_levels as f64 - 1.0);
+            let r = 3.0 * self.scale_factor.powf(level);
+            let k = &map.keyframes[&kf];
+            let mut best = (u32::MAX, usize::MAX);
+            for i in k.grid.in_area(&k.keypoints, uv.x, uv.y, r, 0, 255) {
+                // With depth, the point must also agree in depth (ORB-SLAM's stereo check).
+                let d = k.depth[i] as f64;
+                if d > 0.0 {
+                    let e = (k.keypoints[i].un - uv).norm_squared() * octave_information(k.keypoints[i].octave as u32);
+                    if e > optim::CHI2_RGBD || (d - pc.z).abs() > 0.05 * pc.z.max(0.5) {
+                        continue;
+                    }
+                }
+                let h = hamming(&p.descriptor, &k.descriptors[i]);
+                if h < best.0 {
+                    best = (h, i);
+                }
+            }
+            if best.0 > 50 {
+                continue;
+            }
+            let i = best.1;
+            match map.keyframes[&kf].points[i] {
+                Some(other) if other != pid => {
+                    let n_other = map.points.get(&other).map_or(0, |o| o.observations.len());
+                    let n_this = map.points[&pid].observations.len();
+                    if n_this >= n_other {
+                        map.replace_point(other, pid);
+                    } else {
+                        map.replace_point(pid, other);
+                    }
+                    fused += 1;
+                }
+                Some(_) => {}
+                None => {
+                    map.observe(kf, i, pid);
+                    fused += 1;
+                }
+            }
+        }
+        fused
+    }
+
+    /// Local BA over the new keyframe and its covisible window; keyframes that also see those
+    /// points are fixed (and keyframe 0 always, for the gauge).
+    fn local_ba(&self, map: &mut Map, kf: KfId, report: &mut MergeReport) {
+        let mut local: Vec<KfId> = vec![kf];
+        local.extend(map.keyframes[&kf].best_covisible(self.cfg.local_ba_window as usize - 1));
+        local.sort_unstable();
+        let local_set: BTreeSet<KfId> = local.iter().copied().collect();
+        let mut points: BTreeSet<PointId> = BTreeSet::new();
+        for k in &local {
+            points.extend(map.keyframes[k].points.iter().flatten().copied());
+        }
+        let mut fixed: BTreeSet<KfId> = BTreeSet::new();
+        for pid in &points {
+            for o in map.points[pid].observations.keys() {
+                if !local_set.contains(o) {
+                    fixed.insert(*o);
+                }
+            }
+        }
+        let cams: Vec<KfId> = local.iter().chain(fixed.iter()).copied().collect();
+        let cam_index: BTreeMap<KfId, usize> = cams.iter().enumerate().map(|(i, &k)| (k, i)).collect();
+        let pts: Vec<PointId> = points.into_iter().collect();
+        let mut problem = BaProblem {
+            keyframes: cams
+                .iter()
+                .map(|k| BaCamera { pose_cw: map.keyframes[k].pose_cw, fixed: fixed.contains(k) || *k == 0 })
+                .collect(),
+            points: pts.iter().map(|p| BaPoint { position_w: map.points[p].position, fixed: false }).collect(),
+            observations: Vec::new(),
+            intrinsics: self.intr,
+        };
+        let mut obs_ref: Vec<(PointId, KfId)> = Vec::new();
+        for (pi, pid) in pts.iter().enumerate() {
+            for (k, &kp) in &map.points[pid].observations {
+                let Some(&ci) = cam_index.get(k) else { continue };
+                let key = &map.keyframes[k];
+                let d = key.depth[kp] as f64;
+                let uv = key.keypoints[kp].un;
+                problem.observations.push(BaObservation {
+                    camera: ci,
+                    point: pi,
+                    obs: if d > 0.0 { Observation::Rgbd { uv, depth: d } } else { Observation::Mono { uv } },
+                    info: octave_information(key.keypoints[kp].octave as u32),
+                });
+                obs_ref.push((*pid, *k));
+            }
+        }
+        if problem.keyframes.iter().all(|c| c.fixed) {
+            return;
+        }
+        let params = BaParams { iterations: self.cfg.local_ba_iterations as usize, ..Default::default() };
+        let Ok(r) = optim::local_ba::solve(&mut problem, &params) else {
+            tracing::warn!("local BA failed at keyframe {kf}; map left unchanged");
+            return;
+        };
+        report.ba_initial_cost = r.initial_cost;
+        report.ba_final_cost = r.final_cost;
+        report.ba_outliers = r.outliers.len();
+        for (k, c) in cams.iter().zip(&problem.keyframes) {
+            if !c.fixed {
+                map.keyframes.get_mut(k).expect("exists").pose_cw = c.pose_cw;
+            }
+        }
+        for (p, bp) in pts.iter().zip(&problem.points) {
+            map.points.get_mut(p).expect("exists").position = bp.position_w;
+        }
+        // Drop outlier observations; points left with none disappear.
+        for &o in &r.outliers {
+            let (pid, k) = obs_ref[o];
+            let Some(p) = map.points.get_mut(&pid) else { continue };
+            if let Some(kp) = p.observations.remove(&k) {
+                if let Some(key) = map.keyframes.get_mut(&k) {
+                    key.points[kp] = None;
+                }
+            }
+            if p.observations.is_empty() {
+                map.points.remove(&pid);
+            }
+        }
+        for p in &pts {
+            map.update_point(*p, self.scale_factor, self.n_levels);
+        }
+    }
+}
