@@ -172,6 +172,7 @@ struct Structure {
 }
 
 impl Structure {
+    #[allow(clippy::needless_range_loop)] // c indexes both a block's columns and its offsets
     fn build(problem: &BaProblem, fixed_cam: &[bool]) -> Result<Self, BaError> {
         let mut cam_var = vec![None; problem.keyframes.len()];
         let mut n_cam = 0;
@@ -249,8 +250,7 @@ impl Structure {
         // increasing ci; within a block column every scalar column has the same rows,
         // except that the diagonal block is cut at the diagonal.
         let mut by_col: Vec<Vec<usize>> = vec![Vec::new(); n_cam];
-        for (b, &(ci, cj)) in blocks.iter().enumerate() {
-            let _ = ci;
+        for (b, &(_, cj)) in blocks.iter().enumerate() {
             by_col[cj].push(b);
         }
         let n = 6 * n_cam;
@@ -295,16 +295,6 @@ impl Structure {
             n_values,
         })
     }
-}
-
-/// One observation linearised at the current estimate.
-#[derive(Clone, Copy)]
-struct ObsLin {
-    /// `w = info · ρ'(χ²)`; zero for invalid observations.
-    w: f64,
-    residual: Vector3<f64>,
-    jac_pose: nalgebra::Matrix3x6<f64>,
-    jac_point: Matrix3<f64>,
 }
 
 /// The (undamped) normal equations `H δ = −b` in block form.
@@ -397,30 +387,26 @@ fn linearize(
             continue;
         };
         let chi2 = o.info * lin.residual.norm_squared();
+        // IRLS weight: information times the kernel's derivative (g2o's robustified Ω).
         let w = if use_huber {
             o.info * huber(chi2, o.obs.chi2_threshold()).1
         } else {
             o.info
         };
-        let l = ObsLin {
-            w,
-            residual: lin.residual,
-            jac_pose: lin.jac_pose,
-            jac_point: lin.jac_point,
-        };
-        let wjp = l.jac_point * l.w;
+        let wr = lin.residual * w;
+        let wjp = lin.jac_point * w;
         if let Some(c) = cv {
-            let jct = l.jac_pose.transpose();
-            ne.h_cc[c] += jct * l.jac_pose * l.w;
-            ne.b_c[c] += jct * l.residual * l.w;
+            let jct = lin.jac_pose.transpose();
+            ne.h_cc[c] += jct * (lin.jac_pose * w);
+            ne.b_c[c] += jct * wr;
             if pv.is_some() {
                 ne.h_cp[k] = jct * wjp;
             }
         }
         if let Some(p) = pv {
-            let jpt = l.jac_point.transpose();
+            let jpt = lin.jac_point.transpose();
             ne.h_pp[p] += jpt * wjp;
-            ne.b_p[p] += jpt * l.residual * l.w;
+            ne.b_p[p] += jpt * wr;
         }
     }
     let max_diag = ne
@@ -432,15 +418,20 @@ fn linearize(
     (ne, max_diag)
 }
 
+/// An LM step: one increment per free camera and per free point.
+type Step = (Vec<Vector6<f64>>, Vec<Vector3<f64>>);
+
 /// Solves `(H + λI) δ = −b` by the Schur complement on the points and faer's sparse
 /// Cholesky on the reduced camera system. `None` if a damped block is not positive
 /// definite (the caller then raises λ).
+// Index loops: several parallel per-point arrays are read at the same index.
+#[allow(clippy::needless_range_loop)]
 fn schur_step(
     problem: &BaProblem,
     st: &Structure,
     ne: &NormalEquations,
     lambda: f64,
-) -> Option<(Vec<Vector6<f64>>, Vec<Vector3<f64>>)> {
+) -> Option<Step> {
     let damp3 = Matrix3::identity() * lambda;
     let mut h_pp_inv = Vec::with_capacity(st.n_point);
     for h in &ne.h_pp {
@@ -783,16 +774,21 @@ mod tests {
         }
         let po = 6 * st.n_cam;
         for p in 0..st.n_point {
-            h.view_mut((po + 3 * p, po + 3 * p), (3, 3)).add_assign(&ne.h_pp[p]);
+            h.view_mut((po + 3 * p, po + 3 * p), (3, 3))
+                .add_assign(&ne.h_pp[p]);
             b.rows_mut(po + 3 * p, 3).copy_from(&ne.b_p[p]);
         }
         for (k, o) in problem.observations.iter().enumerate() {
             if let (Some(c), Some(p)) = (st.cam_var[o.camera], st.point_var[o.point]) {
-                h.view_mut((6 * c, po + 3 * p), (6, 3)).add_assign(&ne.h_cp[k]);
-                h.view_mut((po + 3 * p, 6 * c), (3, 6)).add_assign(&ne.h_cp[k].transpose());
+                h.view_mut((6 * c, po + 3 * p), (6, 3))
+                    .add_assign(&ne.h_cp[k]);
+                h.view_mut((po + 3 * p, 6 * c), (3, 6))
+                    .add_assign(&ne.h_cp[k].transpose());
             }
         }
-        h.cholesky().expect("damped H is positive definite").solve(&(-b))
+        h.cholesky()
+            .expect("damped H is positive definite")
+            .solve(&(-b))
     }
 
     use std::ops::AddAssign;
@@ -819,7 +815,10 @@ mod tests {
                     schur.rows_mut(6 * st.n_cam + 3 * p, 3).copy_from(d);
                 }
                 let err = (&schur - &dense).norm() / dense.norm();
-                assert!(err < 1e-8, "seed {seed} λ {lambda}: relative difference {err}");
+                assert!(
+                    err < 1e-8,
+                    "seed {seed} λ {lambda}: relative difference {err}"
+                );
             }
         }
     }
