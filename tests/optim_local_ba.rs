@@ -1,7 +1,7 @@
 //! Local bundle adjustment on synthetic arc scenes.
 
 use homing::optim::{
-    BaCamera, BaObservation, BaParams, BaPoint, BaProblem, Intrinsics, Observation,
+    BaCamera, BaObservation, BaParams, BaPoint, BaProblem, Intrinsics, Observation, Termination,
     octave_information, se3, solve,
 };
 use nalgebra::{
@@ -279,6 +279,20 @@ fn ba_degenerate_inputs() {
     };
     let r = solve(&mut empty, &BaParams::default()).unwrap();
     assert_eq!(r.iterations, 0);
+    assert_eq!(r.termination, Termination::NothingToOptimize);
+    // Everything fixed: nothing moves, but χ² and outliers are still reported.
+    let mut scene = arc_scene(17, 3, 10, None);
+    scene
+        .problem
+        .keyframes
+        .iter_mut()
+        .for_each(|k| k.fixed = true);
+    scene.problem.points.iter_mut().for_each(|p| p.fixed = true);
+    let before = scene.problem.clone();
+    let r = solve(&mut scene.problem, &BaParams::default()).unwrap();
+    assert_eq!(r.termination, Termination::NothingToOptimize);
+    assert_eq!(scene.problem, before);
+    assert!(r.initial_chi2 > 0.0 && r.initial_chi2 == r.final_chi2);
     // A point behind one camera is reported, not a panic.
     let mut scene = arc_scene(15, 4, 20, None);
     perturb(&mut scene, &[0], 16);

@@ -171,8 +171,11 @@ fn degenerate_points_do_not_panic() {
     s.observations[0].point_w = (s.truth.inverse() * Point3::new(0.0, 0.0, -2.0)).coords;
     s.observations[1].point_w = s.truth.inverse().translation.vector;
     s.observations[2].point_w = Vector3::new(f64::NAN, 0.0, 1.0);
+    // Invalid information weights are ignored, never counted as inliers.
+    s.observations[3].info = -1.0;
+    s.observations[4].info = f64::NAN;
     let r = refine_pose(&s.truth, &s.observations, &INTR, &PoseParams::default());
-    assert!(!r.inliers[0] && !r.inliers[1] && !r.inliers[2]);
+    assert!(r.inliers[..5].iter().all(|i| !i), "{:?}", &r.inliers[..5]);
     assert!(r.n_inliers >= 30);
     let (dt, dr) = pose_error(&r.pose, &s.truth);
     assert!(dt < 0.01 && dr < 0.2);

@@ -64,8 +64,12 @@ pub struct PoseRefinement {
     pub optimized: bool,
 }
 
-/// χ² of one observation at `pose`, `None` if it cannot be evaluated (point behind camera).
+/// χ² of one observation at `pose`, `None` if it cannot be evaluated (point behind the
+/// camera or non-finite, information not positive and finite).
 fn chi2_of(o: &PoseObservation, intr: &Intrinsics, pose: &Isometry3<f64>) -> Option<f64> {
+    if !(o.info > 0.0 && o.info.is_finite()) {
+        return None;
+    }
     let r = o.obs.residual(intr, pose, &o.point_w)?;
     Some(o.info * r.norm_squared())
 }
