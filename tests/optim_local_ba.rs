@@ -2,7 +2,7 @@
 
 use homing::optim::{
     BaCamera, BaObservation, BaParams, BaPoint, BaProblem, Intrinsics, Observation, Termination,
-    octave_information, se3, solve,
+    octave_information, se3, solve, solve_with_outlier_rejection,
 };
 use nalgebra::{
     Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector2, Vector3, Vector6,
@@ -200,6 +200,12 @@ fn ba_recovers_perturbed_scene() {
 
 #[test]
 fn ba_flags_gross_outliers() {
+    for two_stage in [false, true] {
+        check_gross_outliers(two_stage);
+    }
+}
+
+fn check_gross_outliers(two_stage: bool) {
     let mut scene = arc_scene(7, 10, 300, None);
     perturb(&mut scene, &[0, 1], 8);
     let mut rng = ChaCha8Rng::seed_from_u64(9);
@@ -221,7 +227,21 @@ fn ba_flags_gross_outliers() {
         iterations: 20,
         ..BaParams::default()
     };
-    let report = solve(&mut scene.problem, &params).unwrap();
+    let report = if two_stage {
+        // ORB-SLAM's schedule: 5 robust iterations, drop outliers, 10 plain ones.
+        let first = BaParams {
+            iterations: 5,
+            ..BaParams::default()
+        };
+        let second = BaParams {
+            iterations: 10,
+            huber: false,
+            ..BaParams::default()
+        };
+        solve_with_outlier_rejection(&mut scene.problem, &first, &second).unwrap()
+    } else {
+        solve(&mut scene.problem, &params).unwrap()
+    };
     for k in &injected {
         assert!(
             report.outliers.contains(k),

@@ -568,6 +568,20 @@ fn fixed_cameras(problem: &BaProblem) -> (Vec<bool>, Option<usize>) {
     (fixed, gauge)
 }
 
+/// Observations whose χ² exceeds their threshold, or that cannot be evaluated.
+fn outliers_at(problem: &BaProblem, state: &State) -> Vec<usize> {
+    problem
+        .observations
+        .iter()
+        .enumerate()
+        .filter(|(_, o)| match obs_chi2(problem, state, o) {
+            Some(c) => c > o.obs.chi2_threshold(),
+            None => true,
+        })
+        .map(|(k, _)| k)
+        .collect()
+}
+
 /// Runs Levenberg–Marquardt bundle adjustment, updating the problem's free poses and points.
 pub fn solve(problem: &mut BaProblem, params: &BaParams) -> Result<BaReport, BaError> {
     validate(problem)?;
@@ -659,16 +673,7 @@ pub fn solve(problem: &mut BaProblem, params: &BaParams) -> Result<BaReport, BaE
         p.position_w = *pos;
     }
     let (_, final_cost, final_chi2) = evaluate_all(problem, &state, use_huber);
-    let outliers = problem
-        .observations
-        .iter()
-        .enumerate()
-        .filter(|(_, o)| match obs_chi2(problem, &state, o) {
-            Some(c) => c > o.obs.chi2_threshold(),
-            None => true,
-        })
-        .map(|(k, _)| k)
-        .collect();
+    let outliers = outliers_at(problem, &state);
     Ok(BaReport {
         initial_chi2,
         final_chi2,
@@ -680,6 +685,77 @@ pub fn solve(problem: &mut BaProblem, params: &BaParams) -> Result<BaReport, BaE
         gauge_fixed_camera,
         termination,
     })
+}
+
+/// ORB-SLAM's local-BA schedule: a robust solve (`first`, ORB-SLAM: 5 iterations with
+/// Huber), then the observations it flags as outliers are set aside and a second solve
+/// (`second`, ORB-SLAM: 10 iterations without the kernel) refines on the inliers only.
+///
+/// The returned report spans both stages: initial values from the first, final values and
+/// per-iteration costs concatenated, and `outliers` re-evaluated over **all** observations
+/// at the final estimate, so the caller can erase those map-point observations.
+pub fn solve_with_outlier_rejection(
+    problem: &mut BaProblem,
+    first: &BaParams,
+    second: &BaParams,
+) -> Result<BaReport, BaError> {
+    let r1 = solve(problem, first)?;
+    if r1.outliers.is_empty() {
+        let r2 = solve(problem, second)?;
+        return Ok(merge_reports(r1, r2, outliers_all(problem)));
+    }
+    // Solve a copy without the outliers, then copy the estimate back.
+    let mut inlier_problem = BaProblem {
+        keyframes: problem.keyframes.clone(),
+        points: problem.points.clone(),
+        observations: Vec::with_capacity(problem.observations.len() - r1.outliers.len()),
+        intrinsics: problem.intrinsics,
+    };
+    let mut outlier_iter = r1.outliers.iter().peekable();
+    for (k, o) in problem.observations.iter().enumerate() {
+        if outlier_iter.peek() == Some(&&k) {
+            outlier_iter.next();
+        } else {
+            inlier_problem.observations.push(*o);
+        }
+    }
+    // Keep the gauge of the first stage even if its anchor lost all its observations.
+    if let Some(c) = r1.gauge_fixed_camera {
+        inlier_problem.keyframes[c].fixed = true;
+    }
+    let r2 = solve(&mut inlier_problem, second)?;
+    for (dst, src) in problem.keyframes.iter_mut().zip(&inlier_problem.keyframes) {
+        dst.pose_cw = src.pose_cw;
+    }
+    for (dst, src) in problem.points.iter_mut().zip(&inlier_problem.points) {
+        dst.position_w = src.position_w;
+    }
+    Ok(merge_reports(r1, r2, outliers_all(problem)))
+}
+
+/// Outliers over every observation of `problem` at its current estimate.
+fn outliers_all(problem: &BaProblem) -> Vec<usize> {
+    let state = State {
+        poses: problem.keyframes.iter().map(|k| k.pose_cw).collect(),
+        points: problem.points.iter().map(|p| p.position_w).collect(),
+    };
+    outliers_at(problem, &state)
+}
+
+fn merge_reports(r1: BaReport, r2: BaReport, outliers: Vec<usize>) -> BaReport {
+    let mut cost_per_iteration = r1.cost_per_iteration;
+    cost_per_iteration.extend(r2.cost_per_iteration);
+    BaReport {
+        initial_chi2: r1.initial_chi2,
+        final_chi2: r2.final_chi2,
+        initial_cost: r1.initial_cost,
+        final_cost: r2.final_cost,
+        cost_per_iteration,
+        iterations: r1.iterations + r2.iterations,
+        outliers,
+        gauge_fixed_camera: r1.gauge_fixed_camera,
+        termination: r2.termination,
+    }
 }
 
 #[cfg(test)]
