@@ -20,14 +20,21 @@ fn pose_error(a: &Isometry3<f64>, b: &Isometry3<f64>) -> (f64, f64) {
     // Compare camera centres (metres) and orientations (degrees).
     let ca = a.inverse().translation.vector;
     let cb = b.inverse().translation.vector;
-    ((ca - cb).norm(), a.rotation.angle_to(&b.rotation).to_degrees())
+    (
+        (ca - cb).norm(),
+        a.rotation.angle_to(&b.rotation).to_degrees(),
+    )
 }
 
 /// Perturbs a pose by exactly `trans` metres and `rot_deg` degrees in random directions.
-fn perturb(rng: &mut ChaCha8Rng, pose: &Isometry3<f64>, trans: f64, rot_deg: f64) -> Isometry3<f64> {
-    let dir = |rng: &mut ChaCha8Rng| {
-        Vector3::from_fn(|_, _| rng.random_range(-1.0..1.0)).normalize()
-    };
+fn perturb(
+    rng: &mut ChaCha8Rng,
+    pose: &Isometry3<f64>,
+    trans: f64,
+    rot_deg: f64,
+) -> Isometry3<f64> {
+    let dir =
+        |rng: &mut ChaCha8Rng| Vector3::from_fn(|_, _| rng.random_range(-1.0..1.0)).normalize();
     let w = dir(rng) * rot_deg.to_radians();
     let v = dir(rng) * trans;
     se3::retract(pose, &Vector6::new(w.x, w.y, w.z, v.x, v.y, v.z))
@@ -72,14 +79,25 @@ fn scene(seed: u64, n: usize, outlier_rate: f64, rgbd: bool) -> Scene {
             // Noise on the virtual right coordinate, as ORB-SLAM models it.
             let ur = true_uv.x - INTR.bf / p_c.z + noise.sample(&mut rng);
             let disparity = (uv.x - ur).max(0.5);
-            Observation::Rgbd { uv, depth: INTR.bf / disparity }
+            Observation::Rgbd {
+                uv,
+                depth: INTR.bf / disparity,
+            }
         } else {
             Observation::Mono { uv }
         };
-        observations.push(PoseObservation { point_w, obs, info: octave_information(octave) });
+        observations.push(PoseObservation {
+            point_w,
+            obs,
+            info: octave_information(octave),
+        });
         is_outlier.push(outlier);
     }
-    Scene { truth, observations, is_outlier }
+    Scene {
+        truth,
+        observations,
+        is_outlier,
+    }
 }
 
 fn check_recovery(rgbd: bool) {
@@ -98,7 +116,11 @@ fn check_recovery(rgbd: bool) {
             }
         }
         let n_good = s.is_outlier.iter().filter(|o| !**o).count();
-        assert!(r.n_inliers as f64 > 0.85 * n_good as f64, "{} of {n_good}", r.n_inliers);
+        assert!(
+            r.n_inliers as f64 > 0.85 * n_good as f64,
+            "{} of {n_good}",
+            r.n_inliers
+        );
         assert_eq!(r.n_inliers, r.inliers.iter().filter(|i| **i).count());
         assert!(r.final_chi2.is_finite() && r.final_chi2 > 0.0);
     }
@@ -133,7 +155,11 @@ fn all_outliers_report_few_inliers() {
     let mut rng = ChaCha8Rng::seed_from_u64(3);
     let init = perturb(&mut rng, &s.truth, 0.05, 2.0);
     let r = refine_pose(&init, &s.observations, &INTR, &PoseParams::default());
-    assert!(r.n_inliers < 10, "{} inliers among pure outliers", r.n_inliers);
+    assert!(
+        r.n_inliers < 10,
+        "{} inliers among pure outliers",
+        r.n_inliers
+    );
     assert!(r.pose.translation.vector.iter().all(|x| x.is_finite()));
     assert!(r.pose.rotation.coords.iter().all(|x| x.is_finite()));
 }
@@ -145,8 +171,11 @@ fn degenerate_points_do_not_panic() {
     s.observations[0].point_w = (s.truth.inverse() * Point3::new(0.0, 0.0, -2.0)).coords;
     s.observations[1].point_w = s.truth.inverse().translation.vector;
     s.observations[2].point_w = Vector3::new(f64::NAN, 0.0, 1.0);
+    // Invalid information weights are ignored, never counted as inliers.
+    s.observations[3].info = -1.0;
+    s.observations[4].info = f64::NAN;
     let r = refine_pose(&s.truth, &s.observations, &INTR, &PoseParams::default());
-    assert!(!r.inliers[0] && !r.inliers[1] && !r.inliers[2]);
+    assert!(r.inliers[..5].iter().all(|i| !i), "{:?}", &r.inliers[..5]);
     assert!(r.n_inliers >= 30);
     let (dt, dr) = pose_error(&r.pose, &s.truth);
     assert!(dt < 0.01 && dr < 0.2);

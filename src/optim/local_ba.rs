@@ -12,6 +12,12 @@
 //!
 //! Damping is Nielsen's: `H + λI`, λ scaled by the gain ratio on success and by a growing
 //! factor on a rejected step. Fixed cameras and fixed points are constants, not variables.
+//!
+//! Cost: 10 keyframes × 2000 points × 10 000 observations take ≈ 2.8 ms per LM iteration in
+//! release on the 2-core dev machine (`ba_timing` in `tests/optim_local_ba.rs`).
+//!
+//! faer's sparse Cholesky runs with faer's global parallelism setting (rayon by default);
+//! the reduced systems of local BA are small enough that this rarely matters.
 
 use std::collections::HashMap;
 
@@ -172,6 +178,7 @@ struct Structure {
 }
 
 impl Structure {
+    #[allow(clippy::needless_range_loop)] // c indexes both a block's columns and its offsets
     fn build(problem: &BaProblem, fixed_cam: &[bool]) -> Result<Self, BaError> {
         let mut cam_var = vec![None; problem.keyframes.len()];
         let mut n_cam = 0;
@@ -249,8 +256,7 @@ impl Structure {
         // increasing ci; within a block column every scalar column has the same rows,
         // except that the diagonal block is cut at the diagonal.
         let mut by_col: Vec<Vec<usize>> = vec![Vec::new(); n_cam];
-        for (b, &(ci, cj)) in blocks.iter().enumerate() {
-            let _ = ci;
+        for (b, &(_, cj)) in blocks.iter().enumerate() {
             by_col[cj].push(b);
         }
         let n = 6 * n_cam;
@@ -295,16 +301,6 @@ impl Structure {
             n_values,
         })
     }
-}
-
-/// One observation linearised at the current estimate.
-#[derive(Clone, Copy)]
-struct ObsLin {
-    /// `w = info · ρ'(χ²)`; zero for invalid observations.
-    w: f64,
-    residual: Vector3<f64>,
-    jac_pose: nalgebra::Matrix3x6<f64>,
-    jac_point: Matrix3<f64>,
 }
 
 /// The (undamped) normal equations `H δ = −b` in block form.
@@ -397,30 +393,26 @@ fn linearize(
             continue;
         };
         let chi2 = o.info * lin.residual.norm_squared();
+        // IRLS weight: information times the kernel's derivative (g2o's robustified Ω).
         let w = if use_huber {
             o.info * huber(chi2, o.obs.chi2_threshold()).1
         } else {
             o.info
         };
-        let l = ObsLin {
-            w,
-            residual: lin.residual,
-            jac_pose: lin.jac_pose,
-            jac_point: lin.jac_point,
-        };
-        let wjp = l.jac_point * l.w;
+        let wr = lin.residual * w;
+        let wjp = lin.jac_point * w;
         if let Some(c) = cv {
-            let jct = l.jac_pose.transpose();
-            ne.h_cc[c] += jct * l.jac_pose * l.w;
-            ne.b_c[c] += jct * l.residual * l.w;
+            let jct = lin.jac_pose.transpose();
+            ne.h_cc[c] += jct * (lin.jac_pose * w);
+            ne.b_c[c] += jct * wr;
             if pv.is_some() {
                 ne.h_cp[k] = jct * wjp;
             }
         }
         if let Some(p) = pv {
-            let jpt = l.jac_point.transpose();
+            let jpt = lin.jac_point.transpose();
             ne.h_pp[p] += jpt * wjp;
-            ne.b_p[p] += jpt * l.residual * l.w;
+            ne.b_p[p] += jpt * wr;
         }
     }
     let max_diag = ne
@@ -432,15 +424,20 @@ fn linearize(
     (ne, max_diag)
 }
 
+/// An LM step: one increment per free camera and per free point.
+type Step = (Vec<Vector6<f64>>, Vec<Vector3<f64>>);
+
 /// Solves `(H + λI) δ = −b` by the Schur complement on the points and faer's sparse
 /// Cholesky on the reduced camera system. `None` if a damped block is not positive
 /// definite (the caller then raises λ).
+// Index loops: several parallel per-point arrays are read at the same index.
+#[allow(clippy::needless_range_loop)]
 fn schur_step(
     problem: &BaProblem,
     st: &Structure,
     ne: &NormalEquations,
     lambda: f64,
-) -> Option<(Vec<Vector6<f64>>, Vec<Vector3<f64>>)> {
+) -> Option<Step> {
     let damp3 = Matrix3::identity() * lambda;
     let mut h_pp_inv = Vec::with_capacity(st.n_point);
     for h in &ne.h_pp {
@@ -577,6 +574,20 @@ fn fixed_cameras(problem: &BaProblem) -> (Vec<bool>, Option<usize>) {
     (fixed, gauge)
 }
 
+/// Observations whose χ² exceeds their threshold, or that cannot be evaluated.
+fn outliers_at(problem: &BaProblem, state: &State) -> Vec<usize> {
+    problem
+        .observations
+        .iter()
+        .enumerate()
+        .filter(|(_, o)| match obs_chi2(problem, state, o) {
+            Some(c) => c > o.obs.chi2_threshold(),
+            None => true,
+        })
+        .map(|(k, _)| k)
+        .collect()
+}
+
 /// Runs Levenberg–Marquardt bundle adjustment, updating the problem's free poses and points.
 pub fn solve(problem: &mut BaProblem, params: &BaParams) -> Result<BaReport, BaError> {
     validate(problem)?;
@@ -668,16 +679,7 @@ pub fn solve(problem: &mut BaProblem, params: &BaParams) -> Result<BaReport, BaE
         p.position_w = *pos;
     }
     let (_, final_cost, final_chi2) = evaluate_all(problem, &state, use_huber);
-    let outliers = problem
-        .observations
-        .iter()
-        .enumerate()
-        .filter(|(_, o)| match obs_chi2(problem, &state, o) {
-            Some(c) => c > o.obs.chi2_threshold(),
-            None => true,
-        })
-        .map(|(k, _)| k)
-        .collect();
+    let outliers = outliers_at(problem, &state);
     Ok(BaReport {
         initial_chi2,
         final_chi2,
@@ -689,6 +691,77 @@ pub fn solve(problem: &mut BaProblem, params: &BaParams) -> Result<BaReport, BaE
         gauge_fixed_camera,
         termination,
     })
+}
+
+/// ORB-SLAM's local-BA schedule: a robust solve (`first`, ORB-SLAM: 5 iterations with
+/// Huber), then the observations it flags as outliers are set aside and a second solve
+/// (`second`, ORB-SLAM: 10 iterations without the kernel) refines on the inliers only.
+///
+/// The returned report spans both stages: initial values from the first, final values and
+/// per-iteration costs concatenated, and `outliers` re-evaluated over **all** observations
+/// at the final estimate, so the caller can erase those map-point observations.
+pub fn solve_with_outlier_rejection(
+    problem: &mut BaProblem,
+    first: &BaParams,
+    second: &BaParams,
+) -> Result<BaReport, BaError> {
+    let r1 = solve(problem, first)?;
+    if r1.outliers.is_empty() {
+        let r2 = solve(problem, second)?;
+        return Ok(merge_reports(r1, r2, outliers_all(problem)));
+    }
+    // Solve a copy without the outliers, then copy the estimate back.
+    let mut inlier_problem = BaProblem {
+        keyframes: problem.keyframes.clone(),
+        points: problem.points.clone(),
+        observations: Vec::with_capacity(problem.observations.len() - r1.outliers.len()),
+        intrinsics: problem.intrinsics,
+    };
+    let mut outlier_iter = r1.outliers.iter().peekable();
+    for (k, o) in problem.observations.iter().enumerate() {
+        if outlier_iter.peek() == Some(&&k) {
+            outlier_iter.next();
+        } else {
+            inlier_problem.observations.push(*o);
+        }
+    }
+    // Keep the gauge of the first stage even if its anchor lost all its observations.
+    if let Some(c) = r1.gauge_fixed_camera {
+        inlier_problem.keyframes[c].fixed = true;
+    }
+    let r2 = solve(&mut inlier_problem, second)?;
+    for (dst, src) in problem.keyframes.iter_mut().zip(&inlier_problem.keyframes) {
+        dst.pose_cw = src.pose_cw;
+    }
+    for (dst, src) in problem.points.iter_mut().zip(&inlier_problem.points) {
+        dst.position_w = src.position_w;
+    }
+    Ok(merge_reports(r1, r2, outliers_all(problem)))
+}
+
+/// Outliers over every observation of `problem` at its current estimate.
+fn outliers_all(problem: &BaProblem) -> Vec<usize> {
+    let state = State {
+        poses: problem.keyframes.iter().map(|k| k.pose_cw).collect(),
+        points: problem.points.iter().map(|p| p.position_w).collect(),
+    };
+    outliers_at(problem, &state)
+}
+
+fn merge_reports(r1: BaReport, r2: BaReport, outliers: Vec<usize>) -> BaReport {
+    let mut cost_per_iteration = r1.cost_per_iteration;
+    cost_per_iteration.extend(r2.cost_per_iteration);
+    BaReport {
+        initial_chi2: r1.initial_chi2,
+        final_chi2: r2.final_chi2,
+        initial_cost: r1.initial_cost,
+        final_cost: r2.final_cost,
+        cost_per_iteration,
+        iterations: r1.iterations + r2.iterations,
+        outliers,
+        gauge_fixed_camera: r1.gauge_fixed_camera,
+        termination: r2.termination,
+    }
 }
 
 #[cfg(test)]
@@ -783,16 +856,21 @@ mod tests {
         }
         let po = 6 * st.n_cam;
         for p in 0..st.n_point {
-            h.view_mut((po + 3 * p, po + 3 * p), (3, 3)).add_assign(&ne.h_pp[p]);
+            h.view_mut((po + 3 * p, po + 3 * p), (3, 3))
+                .add_assign(&ne.h_pp[p]);
             b.rows_mut(po + 3 * p, 3).copy_from(&ne.b_p[p]);
         }
         for (k, o) in problem.observations.iter().enumerate() {
             if let (Some(c), Some(p)) = (st.cam_var[o.camera], st.point_var[o.point]) {
-                h.view_mut((6 * c, po + 3 * p), (6, 3)).add_assign(&ne.h_cp[k]);
-                h.view_mut((po + 3 * p, 6 * c), (3, 6)).add_assign(&ne.h_cp[k].transpose());
+                h.view_mut((6 * c, po + 3 * p), (6, 3))
+                    .add_assign(&ne.h_cp[k]);
+                h.view_mut((po + 3 * p, 6 * c), (3, 6))
+                    .add_assign(&ne.h_cp[k].transpose());
             }
         }
-        h.cholesky().expect("damped H is positive definite").solve(&(-b))
+        h.cholesky()
+            .expect("damped H is positive definite")
+            .solve(&(-b))
     }
 
     use std::ops::AddAssign;
@@ -819,7 +897,10 @@ mod tests {
                     schur.rows_mut(6 * st.n_cam + 3 * p, 3).copy_from(d);
                 }
                 let err = (&schur - &dense).norm() / dense.norm();
-                assert!(err < 1e-8, "seed {seed} λ {lambda}: relative difference {err}");
+                assert!(
+                    err < 1e-8,
+                    "seed {seed} λ {lambda}: relative difference {err}"
+                );
             }
         }
     }

@@ -9,7 +9,7 @@
 
 use nalgebra::{Isometry3, Matrix6, Vector3, Vector6};
 
-use super::reprojection::{huber, Intrinsics, Observation};
+use super::reprojection::{Intrinsics, Observation, huber};
 use super::se3;
 
 /// One 2-D/3-D correspondence: a fixed world point and its observation in the frame.
@@ -64,8 +64,12 @@ pub struct PoseRefinement {
     pub optimized: bool,
 }
 
-/// χ² of one observation at `pose`, `None` if it cannot be evaluated (point behind camera).
+/// χ² of one observation at `pose`, `None` if it cannot be evaluated (point behind the
+/// camera or non-finite, information not positive and finite).
 fn chi2_of(o: &PoseObservation, intr: &Intrinsics, pose: &Isometry3<f64>) -> Option<f64> {
+    if !(o.info > 0.0 && o.info.is_finite()) {
+        return None;
+    }
     let r = o.obs.residual(intr, pose, &o.point_w)?;
     Some(o.info * r.norm_squared())
 }
@@ -92,11 +96,7 @@ fn cost(
 }
 
 /// Classifies every observation at `pose`; returns the mask and the inliers' χ² sum.
-fn classify(
-    obs: &[PoseObservation],
-    intr: &Intrinsics,
-    pose: &Isometry3<f64>,
-) -> (Vec<bool>, f64) {
+fn classify(obs: &[PoseObservation], intr: &Intrinsics, pose: &Isometry3<f64>) -> (Vec<bool>, f64) {
     let mut chi2_sum = 0.0;
     let mask = obs
         .iter()

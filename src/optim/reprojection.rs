@@ -41,7 +41,7 @@ pub struct Intrinsics {
 impl Intrinsics {
     /// Pixel projection of a camera-frame point, `None` if it is not in front of the camera.
     pub fn project(&self, p_c: &Vector3<f64>) -> Option<Vector2<f64>> {
-        if !(p_c.z > MIN_DEPTH) {
+        if p_c.z.is_nan() || p_c.z <= MIN_DEPTH {
             return None;
         }
         let iz = 1.0 / p_c.z;
@@ -201,7 +201,7 @@ pub fn huber(chi2: f64, delta2: f64) -> (f64, f64) {
 mod tests {
     use super::*;
     use crate::optim::se3;
-    use nalgebra::{Vector6, Vector3};
+    use nalgebra::{Vector3, Vector6};
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
@@ -242,7 +242,12 @@ mod tests {
             let num = (rp - rm) / (2.0 * h);
             for i in 0..3 {
                 let e = rel_err(num[i], lin.jac_pose[(i, k)]);
-                assert!(e < 1e-6, "pose J[{i},{k}] {} vs {} ({e})", lin.jac_pose[(i, k)], num[i]);
+                assert!(
+                    e < 1e-6,
+                    "pose J[{i},{k}] {} vs {} ({e})",
+                    lin.jac_pose[(i, k)],
+                    num[i]
+                );
             }
         }
         for k in 0..3 {
@@ -253,7 +258,12 @@ mod tests {
             let num = (rp - rm) / (2.0 * h);
             for i in 0..3 {
                 let e = rel_err(num[i], lin.jac_point[(i, k)]);
-                assert!(e < 1e-6, "point J[{i},{k}] {} vs {} ({e})", lin.jac_point[(i, k)], num[i]);
+                assert!(
+                    e < 1e-6,
+                    "point J[{i},{k}] {} vs {} ({e})",
+                    lin.jac_point[(i, k)],
+                    num[i]
+                );
             }
         }
     }
@@ -289,10 +299,20 @@ mod tests {
         let pose = Isometry3::identity();
         let uv = Vector2::new(300.0, 200.0);
         let mono = Observation::Mono { uv };
-        assert!(mono.residual(&INTR, &pose, &Vector3::new(0.0, 0.0, -1.0)).is_none());
-        assert!(mono.linearize(&INTR, &pose, &Vector3::new(0.0, 0.0, 0.0)).is_none());
+        assert!(
+            mono.residual(&INTR, &pose, &Vector3::new(0.0, 0.0, -1.0))
+                .is_none()
+        );
+        assert!(
+            mono.linearize(&INTR, &pose, &Vector3::new(0.0, 0.0, 0.0))
+                .is_none()
+        );
         let bad_depth = Observation::Rgbd { uv, depth: 0.0 };
-        assert!(bad_depth.residual(&INTR, &pose, &Vector3::new(0.0, 0.0, 1.0)).is_none());
+        assert!(
+            bad_depth
+                .residual(&INTR, &pose, &Vector3::new(0.0, 0.0, 1.0))
+                .is_none()
+        );
     }
 
     #[test]

@@ -107,9 +107,7 @@ pub fn log(t: &Isometry3<f64>) -> Vector6<f64> {
     };
     let v_inv = Matrix3::identity() - w * 0.5 + w * w * d;
     let upsilon = v_inv * t.translation.vector;
-    Vector6::new(
-        omega.x, omega.y, omega.z, upsilon.x, upsilon.y, upsilon.z,
-    )
+    Vector6::new(omega.x, omega.y, omega.z, upsilon.x, upsilon.y, upsilon.z)
 }
 
 /// Applies the left update `exp(δ) · T`.
