@@ -46,6 +46,7 @@ pub enum Command {
 #[derive(Debug, Args)]
 pub struct SynthArgs {
     /// desk, loop, aliasing, revisit or case-study.
+    #[arg(long)]
     pub scenario: String,
     #[arg(long)]
     pub out: PathBuf,

@@ -394,12 +394,12 @@ fn bad_cli_input_is_an_error_not_a_panic() {
     let parse = |args: &[&str]| {
         Cli::try_parse_from(std::iter::once("homing-datasets").chain(args.iter().copied()))
     };
-    assert!(parse(&["synth", "desk"]).is_err()); // --out missing
-    assert!(parse(&["synth", "desk", "--out", "x", "--seed", "-3"]).is_err());
+    assert!(parse(&["synth", "--scenario", "desk"]).is_err()); // --out missing
+    assert!(parse(&["synth", "--scenario", "desk", "--out", "x", "--seed", "-3"]).is_err());
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().to_str().unwrap();
-    assert!(run(parse(&["synth", "no-such-scenario", "--out", out]).unwrap()).is_err());
-    assert!(run(parse(&["synth", "desk", "--out", out, "--max-range", "0"]).unwrap()).is_err());
+    assert!(run(parse(&["synth", "--scenario", "no-such-scenario", "--out", out]).unwrap()).is_err());
+    assert!(run(parse(&["synth", "--scenario", "desk", "--out", out, "--max-range", "0"]).unwrap()).is_err());
     assert!(run(parse(&["contact-sheet", out, "--out", "x.png"]).unwrap()).is_err()); // no rgb.txt
     assert!(
         run(parse(&["contact-sheet", out, "--every", "0", "--out", "x.png"]).unwrap()).is_err()

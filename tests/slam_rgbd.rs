@@ -1,0 +1,44 @@
+//! End to end: RGB-D SLAM on the synthetic `desk` scenario (small, realistic sensor noise).
+//! The accuracy target of the full-size sequence (ATE ≤ 0.5 cm) is measured by the benchmark
+//! commands in the README; this test guards against regressions at test-suite cost.
+
+use homing::system::{RunOptions, run};
+use homing_datasets::scenarios;
+use homing_datasets::sensor::SensorOptions;
+use homing_datasets::writer::{GenOptions, generate};
+
+#[test]
+fn desk_small_tracks_every_frame() {
+    let tmp = tempfile::tempdir().unwrap();
+    let sc = scenarios::build("desk", 1).unwrap();
+    let opts = GenOptions {
+        out: tmp.path().join("desk"),
+        small: true,
+        seed: 1,
+        sensor: SensorOptions::realistic(),
+        max_frames: None,
+    };
+    generate(&sc, &opts).unwrap();
+    let out = tmp.path().join("run");
+    let summary = run(&RunOptions {
+        sequence: tmp.path().join("desk"),
+        out: out.clone(),
+        eval: true,
+        ..Default::default()
+    })
+    .unwrap();
+    assert_eq!(summary.frames, summary.sequence_frames);
+    assert_eq!(summary.frames_with_pose, summary.frames, "a frame was lost");
+    assert!(summary.keyframes >= 3, "{} keyframes", summary.keyframes);
+    let ev = summary.evaluation.unwrap();
+    let ate = ev["ate"]["stats"]["rmse"].as_f64().unwrap();
+    assert!(ate < 0.03, "ATE {ate} m");
+    assert_eq!(ev["coverage"].as_f64().unwrap(), 1.0);
+    // The state timeline: Init, Idle, then Mapping to the end, then Final.
+    let states = std::fs::read_to_string(out.join("states.csv")).unwrap();
+    let rows: Vec<&str> = states.lines().skip(1).collect();
+    assert!(rows[0].contains(",Idle,Init,initialized,"), "{}", rows[0]);
+    assert!(rows[1].contains(",Mapping,Idle,able_to_track,"), "{}", rows[1]);
+    assert!(rows[2..rows.len() - 1].iter().all(|r| r.contains(",Mapping,,,")));
+    assert!(rows.last().unwrap().contains(",Final,Mapping,end_of_data,"));
+}
