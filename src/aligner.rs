@@ -17,7 +17,11 @@ pub use crate::optim::Intrinsics;
 
 /// Back-projects an undistorted pixel with a depth (metres) into camera coordinates.
 pub fn backproject(k: &Intrinsics, uv: &Vector2<f64>, depth: f64) -> Vector3<f64> {
-    Vector3::new((uv.x - k.cx) / k.fx * depth, (uv.y - k.cy) / k.fy * depth, depth)
+    Vector3::new(
+        (uv.x - k.cx) / k.fx * depth,
+        (uv.y - k.cy) / k.fy * depth,
+        depth,
+    )
 }
 
 /// Result of an alignment: world-to-camera pose (PnP) or source-to-target transform (3D-3D).
@@ -40,7 +44,9 @@ pub fn pnp_ransac(
     min_inliers: usize,
 ) -> Result<Option<Alignment>> {
     if points_w.len() != uv.len() {
-        return Err(Error::invalid("pnp_ransac: point and pixel lists differ in length"));
+        return Err(Error::invalid(
+            "pnp_ransac: point and pixel lists differ in length",
+        ));
     }
     if points_w.len() < 6 {
         return Ok(None);
@@ -48,7 +54,8 @@ pub fn pnp_ransac(
     let cv = |e: opencv::Error| Error::invalid(format!("OpenCV solvePnPRansac: {e}"));
     let obj = Vector::<Point3d>::from_iter(points_w.iter().map(|p| Point3d::new(p.x, p.y, p.z)));
     let img = Vector::<Point2d>::from_iter(uv.iter().map(|p| Point2d::new(p.x, p.y)));
-    let kmat = Mat::from_slice_2d(&[[k.fx, 0.0, k.cx], [0.0, k.fy, k.cy], [0.0, 0.0, 1.0]]).map_err(cv)?;
+    let kmat =
+        Mat::from_slice_2d(&[[k.fx, 0.0, k.cx], [0.0, k.fy, k.cy], [0.0, 0.0, 1.0]]).map_err(cv)?;
     let mut rvec = Mat::default();
     let mut tvec = Mat::default();
     let mut inl = Vector::<i32>::new();
@@ -82,7 +89,9 @@ pub fn pnp_ransac(
     let mut sse = 0.0;
     let mut n = 0;
     for (i, (p, u)) in points_w.iter().zip(uv).enumerate() {
-        let Some(proj) = k.project(&(pose * Point3::from(*p)).coords) else { continue };
+        let Some(proj) = k.project(&(pose * Point3::from(*p)).coords) else {
+            continue;
+        };
         let e = (proj - u).norm();
         if e <= threshold_px {
             inliers[i] = true;
@@ -93,7 +102,12 @@ pub fn pnp_ransac(
     if n < min_inliers {
         return Ok(None);
     }
-    Ok(Some(Alignment { pose, inliers, n_inliers: n, rms: (sse / n as f64).sqrt() }))
+    Ok(Some(Alignment {
+        pose,
+        inliers,
+        n_inliers: n,
+        rms: (sse / n as f64).sqrt(),
+    }))
 }
 
 /// 3D-3D RANSAC: finds T with `T · src_i ≈ dst_i` (rigid), using minimal 3-point Umeyama fits,
@@ -112,7 +126,10 @@ pub fn rigid_ransac(
     }
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
     let count = |t: &crate::geometry::Sim3| {
-        src.iter().zip(dst).filter(|(s, d)| (t.transform_point(s) - *d).norm() <= threshold).count()
+        src.iter()
+            .zip(dst)
+            .filter(|(s, d)| (t.transform_point(s) - *d).norm() <= threshold)
+            .count()
     };
     let mut best: Option<(usize, crate::geometry::Sim3)> = None;
     for _ in 0..iterations {
@@ -141,13 +158,21 @@ pub fn rigid_ransac(
             .unzip();
         t = umeyama(&s, &d, false)?;
     }
-    let errs: Vec<f64> = src.iter().zip(dst).map(|(s, d)| (t.transform_point(s) - d).norm()).collect();
+    let errs: Vec<f64> = src
+        .iter()
+        .zip(dst)
+        .map(|(s, d)| (t.transform_point(s) - d).norm())
+        .collect();
     let inliers: Vec<bool> = errs.iter().map(|&e| e <= threshold).collect();
     let n_in = inliers.iter().filter(|&&b| b).count();
     if n_in < min_inliers {
         return None;
     }
-    let sse: f64 = errs.iter().filter(|&&e| e <= threshold).map(|e| e * e).sum();
+    let sse: f64 = errs
+        .iter()
+        .filter(|&&e| e <= threshold)
+        .map(|e| e * e)
+        .sum();
     Some(Alignment {
         pose: Isometry3::from_parts(
             Translation3::from(t.translation),
@@ -166,13 +191,25 @@ mod tests {
     fn scene(n: usize, seed: u64) -> Vec<Vector3<f64>> {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
         (0..n)
-            .map(|_| Vector3::new(rng.random_range(-2.0..2.0), rng.random_range(-1.5..1.5), rng.random_range(2.0..6.0)))
+            .map(|_| {
+                Vector3::new(
+                    rng.random_range(-2.0..2.0),
+                    rng.random_range(-1.5..1.5),
+                    rng.random_range(2.0..6.0),
+                )
+            })
             .collect()
     }
 
     #[test]
     fn pnp_recovers_pose_with_outliers() {
-        let k = Intrinsics { fx: 500.0, fy: 500.0, cx: 320.0, cy: 240.0, bf: 40.0 };
+        let k = Intrinsics {
+            fx: 500.0,
+            fy: 500.0,
+            cx: 320.0,
+            cy: 240.0,
+            bf: 40.0,
+        };
         let truth = Isometry3::new(Vector3::new(0.1, -0.2, 0.3), Vector3::new(0.05, -0.1, 0.02));
         let pts = scene(200, 1);
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(2);
@@ -184,7 +221,8 @@ mod tests {
                 if i % 4 == 0 {
                     Vector2::new(rng.random_range(0.0..640.0), rng.random_range(0.0..480.0))
                 } else {
-                    k.project(&pc.coords).unwrap() + Vector2::new(rng.random_range(-0.5..0.5), rng.random_range(-0.5..0.5))
+                    k.project(&pc.coords).unwrap()
+                        + Vector2::new(rng.random_range(-0.5..0.5), rng.random_range(-0.5..0.5))
                 }
             })
             .collect();
@@ -192,14 +230,21 @@ mod tests {
         assert!((a.pose.translation.vector - truth.translation.vector).norm() < 0.01);
         assert!(a.pose.rotation.angle_to(&truth.rotation) < 0.005);
         assert!(a.n_inliers >= 140 && a.inliers.iter().step_by(4).filter(|&&b| b).count() < 5);
-        assert!(pnp_ransac(&pts[..4], &uv[..4], &k, 2.0, 3).unwrap().is_none());
+        assert!(
+            pnp_ransac(&pts[..4], &uv[..4], &k, 2.0, 3)
+                .unwrap()
+                .is_none()
+        );
     }
 
     #[test]
     fn rigid_ransac_recovers_transform() {
         let truth = Isometry3::new(Vector3::new(0.5, 0.1, -0.3), Vector3::new(0.2, 0.4, -0.1));
         let src = scene(100, 3);
-        let mut dst: Vec<Vector3<f64>> = src.iter().map(|p| (truth * Point3::from(*p)).coords).collect();
+        let mut dst: Vec<Vector3<f64>> = src
+            .iter()
+            .map(|p| (truth * Point3::from(*p)).coords)
+            .collect();
         for d in dst.iter_mut().step_by(3) {
             *d += Vector3::new(1.0, -1.0, 0.5);
         }

@@ -263,18 +263,9 @@ pub struct Config {
 
 /// Camera configs shipped with the binary (also in `configs/`), keyed by the TUM sensor name.
 pub const BUILTIN_CAMERAS: [(&str, &str); 3] = [
-    (
-        "freiburg1",
-        include_str!("../configs/tum_freiburg1.toml"),
-    ),
-    (
-        "freiburg2",
-        include_str!("../configs/tum_freiburg2.toml"),
-    ),
-    (
-        "freiburg3",
-        include_str!("../configs/tum_freiburg3.toml"),
-    ),
+    ("freiburg1", include_str!("../configs/tum_freiburg1.toml")),
+    ("freiburg2", include_str!("../configs/tum_freiburg2.toml")),
+    ("freiburg3", include_str!("../configs/tum_freiburg3.toml")),
 ];
 
 impl Config {
@@ -322,12 +313,22 @@ impl Config {
             c.range("camera.fps", cam.fps, 0.1, 1000.0);
         }
         let s = &self.sequence;
-        c.range("sequence.max_association_dt", s.max_association_dt, 0.0, 1.0);
+        c.range(
+            "sequence.max_association_dt",
+            s.max_association_dt,
+            0.0,
+            1.0,
+        );
         let o = &self.orb;
         c.range("orb.n_features", o.n_features as f64, 10.0, 100000.0);
         c.range("orb.n_levels", o.n_levels as f64, 1.0, 16.0);
         c.range("orb.scale_factor", o.scale_factor, 1.01, 2.0);
-        c.range("orb.ini_fast_threshold", o.ini_fast_threshold as f64, 1.0, 255.0);
+        c.range(
+            "orb.ini_fast_threshold",
+            o.ini_fast_threshold as f64,
+            1.0,
+            255.0,
+        );
         c.range(
             "orb.min_fast_threshold",
             o.min_fast_threshold as f64,
@@ -346,25 +347,95 @@ impl Config {
         c.range("tracker.match_ratio", t.match_ratio, 0.1, 1.0);
         c.range("tracker.huber_px", t.huber_px, 0.1, 100.0);
         let m = &self.mapping;
-        c.range("mapping.min_init_depth_points", m.min_init_depth_points as f64, 3.0, 100000.0);
+        c.range(
+            "mapping.min_init_depth_points",
+            m.min_init_depth_points as f64,
+            3.0,
+            100000.0,
+        );
         c.range("mapping.max_point_depth_m", m.max_point_depth_m, 0.1, 100.0);
-        c.range("mapping.keyframe_tracked_ratio", m.keyframe_tracked_ratio, 0.0, 1.0);
-        c.range("mapping.keyframe_max_interval", m.keyframe_max_interval as f64, 1.0, 100000.0);
-        c.range("mapping.local_ba_iterations", m.local_ba_iterations as f64, 0.0, 1000.0);
-        c.range("mapping.local_ba_window", m.local_ba_window as f64, 1.0, 1000.0);
+        c.range(
+            "mapping.keyframe_tracked_ratio",
+            m.keyframe_tracked_ratio,
+            0.0,
+            1.0,
+        );
+        c.range(
+            "mapping.keyframe_max_interval",
+            m.keyframe_max_interval as f64,
+            1.0,
+            100000.0,
+        );
+        c.range(
+            "mapping.local_ba_iterations",
+            m.local_ba_iterations as f64,
+            0.0,
+            1000.0,
+        );
+        c.range(
+            "mapping.local_ba_window",
+            m.local_ba_window as f64,
+            1.0,
+            1000.0,
+        );
         let l = &self.loop_closing;
-        c.range("loop_closing.hbst_max_leaf_size", l.hbst_max_leaf_size as f64, 1.0, 100000.0);
-        c.range("loop_closing.hbst_max_distance", l.hbst_max_distance as f64, 0.0, 256.0);
-        c.range("loop_closing.hbst_max_split_imbalance", l.hbst_max_split_imbalance, 0.0, 0.5);
-        c.range("loop_closing.temporal_window", l.temporal_window as f64, 0.0, 100000.0);
-        c.range("loop_closing.min_matches", l.min_matches as f64, 3.0, 100000.0);
-        c.range("loop_closing.min_inliers", l.min_inliers as f64, 3.0, 100000.0);
-        c.range("loop_closing.min_inlier_ratio", l.min_inlier_ratio, 0.0, 1.0);
+        c.range(
+            "loop_closing.hbst_max_leaf_size",
+            l.hbst_max_leaf_size as f64,
+            1.0,
+            100000.0,
+        );
+        c.range(
+            "loop_closing.hbst_max_distance",
+            l.hbst_max_distance as f64,
+            0.0,
+            256.0,
+        );
+        c.range(
+            "loop_closing.hbst_max_split_imbalance",
+            l.hbst_max_split_imbalance,
+            0.0,
+            0.5,
+        );
+        c.range(
+            "loop_closing.temporal_window",
+            l.temporal_window as f64,
+            0.0,
+            100000.0,
+        );
+        c.range(
+            "loop_closing.min_matches",
+            l.min_matches as f64,
+            3.0,
+            100000.0,
+        );
+        c.range(
+            "loop_closing.min_inliers",
+            l.min_inliers as f64,
+            3.0,
+            100000.0,
+        );
+        c.range(
+            "loop_closing.min_inlier_ratio",
+            l.min_inlier_ratio,
+            0.0,
+            1.0,
+        );
         c.range("loop_closing.pool_size", l.pool_size as f64, 1.0, 1000.0);
         c.pos("loop_closing.max_normalized_chi2", l.max_normalized_chi2);
         let k = &self.controller;
-        c.range("controller.min_expectation_ratio", k.min_expectation_ratio, 0.0, 1.0);
-        c.range("controller.corrupted_after_frames", k.corrupted_after_frames as f64, 1.0, 100000.0);
+        c.range(
+            "controller.min_expectation_ratio",
+            k.min_expectation_ratio,
+            0.0,
+            1.0,
+        );
+        c.range(
+            "controller.corrupted_after_frames",
+            k.corrupted_after_frames as f64,
+            1.0,
+            100000.0,
+        );
         c.first.map_or(Ok(()), Err)
     }
 }
@@ -491,9 +562,12 @@ mod tests {
 
     #[test]
     fn unknown_key_names_key_and_line() {
-        let err = Config::parse("[orb]\nn_features = 500\nn_levles = 8\n", Path::new("x.toml"))
-            .unwrap_err()
-            .to_string();
+        let err = Config::parse(
+            "[orb]\nn_features = 500\nn_levles = 8\n",
+            Path::new("x.toml"),
+        )
+        .unwrap_err()
+        .to_string();
         assert!(err.starts_with("x.toml:3:"), "{err}");
         assert!(err.contains("n_levles"), "{err}");
     }
@@ -516,7 +590,10 @@ mod tests {
     #[test]
     fn shipped_default_toml_is_the_default() {
         let text = include_str!("../configs/default.toml");
-        assert_eq!(Config::parse(text, Path::new("configs/default.toml")).unwrap(), Config::default());
+        assert_eq!(
+            Config::parse(text, Path::new("configs/default.toml")).unwrap(),
+            Config::default()
+        );
     }
 
     #[test]

@@ -12,7 +12,11 @@ pub struct Sim3 {
 
 impl Sim3 {
     pub fn identity() -> Self {
-        Self { rotation: Rotation3::identity(), translation: Vector3::zeros(), scale: 1.0 }
+        Self {
+            rotation: Rotation3::identity(),
+            translation: Vector3::zeros(),
+            scale: 1.0,
+        }
     }
     pub fn transform_point(&self, p: &Vector3<f64>) -> Vector3<f64> {
         self.scale * (self.rotation * p) + self.translation
@@ -48,7 +52,8 @@ pub fn umeyama(x: &[Vector3<f64>], y: &[Vector3<f64>], with_scale: bool) -> Opti
     }
     // Rank check: with fewer than two non-zero singular values the rotation is undetermined.
     let mut sv = svd.singular_values;
-    sv.as_mut_slice().sort_by(|a, b| b.partial_cmp(a).unwrap_or(std::cmp::Ordering::Equal));
+    sv.as_mut_slice()
+        .sort_by(|a, b| b.partial_cmp(a).unwrap_or(std::cmp::Ordering::Equal));
     if !(sv[1] > 1e-12 * sv[0].max(1e-300)) || sigma_x <= 0.0 {
         return None;
     }
@@ -59,7 +64,11 @@ pub fn umeyama(x: &[Vector3<f64>], y: &[Vector3<f64>], with_scale: bool) -> Opti
         1.0
     };
     let t = my - scale * (r * mx);
-    Some(Sim3 { rotation: Rotation3::from_matrix_unchecked(r), translation: t, scale })
+    Some(Sim3 {
+        rotation: Rotation3::from_matrix_unchecked(r),
+        translation: t,
+        scale,
+    })
 }
 
 #[cfg(test)]

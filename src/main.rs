@@ -11,7 +11,11 @@ use std::path::PathBuf;
 use tracing_subscriber::EnvFilter;
 
 #[derive(Parser)]
-#[command(name = "homing", version, about = "Visual SLAM driven by an explicit SLAM state machine")]
+#[command(
+    name = "homing",
+    version,
+    about = "Visual SLAM driven by an explicit SLAM state machine"
+)]
 struct Cli {
     /// More log output (-v: debug, -vv: trace).
     #[arg(short, long, action = clap::ArgAction::Count, global = true)]
@@ -120,7 +124,9 @@ fn main() {
         _ => "trace",
     };
     tracing_subscriber::fmt()
-        .with_env_filter(EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(level)))
+        .with_env_filter(
+            EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(level)),
+        )
         .with_writer(std::io::stderr)
         .with_target(false)
         .init();
@@ -192,7 +198,12 @@ fn cmd_eval(a: EvalArgs) -> Result<()> {
         return Ok(());
     }
     let s = &ate.stats;
-    println!("ATE ({:?}-aligned, {} associated poses of {} estimated)", a.align, ate.pairs, est.len());
+    println!(
+        "ATE ({:?}-aligned, {} associated poses of {} estimated)",
+        a.align,
+        ate.pairs,
+        est.len()
+    );
     println!("  rmse   {:.6} m", s.rmse);
     println!("  mean   {:.6} m", s.mean);
     println!("  median {:.6} m", s.median);
@@ -233,7 +244,9 @@ fn coverage_for(
                     .with_context(|| format!("{}: cannot read", summary.display()))?;
                 let v: serde_json::Value = serde_json::from_str(&text)
                     .with_context(|| format!("{}: not valid JSON", summary.display()))?;
-                v.get("sequence").and_then(|s| s.as_str()).map(PathBuf::from)
+                v.get("sequence")
+                    .and_then(|s| s.as_str())
+                    .map(PathBuf::from)
             } else {
                 None
             }
@@ -244,7 +257,10 @@ fn coverage_for(
     if !rgb.is_file() {
         return Ok(None);
     }
-    let stamps: Vec<f64> = homing::io::tum::read_list(&rgb)?.iter().map(|e| e.t).collect();
+    let stamps: Vec<f64> = homing::io::tum::read_list(&rgb)?
+        .iter()
+        .map(|e| e.t)
+        .collect();
     let eligible = eval::eligible_stamps(&stamps, gt, a.max_dt);
     Ok(Some(eval::coverage(&eligible, est, a.max_dt)))
 }

@@ -88,18 +88,29 @@ pub struct Map {
 
 impl Map {
     pub fn new(id: u32) -> Self {
-        Self { id, ..Default::default() }
+        Self {
+            id,
+            ..Default::default()
+        }
     }
 
     pub fn add_keyframe(&mut self, m: &Measurement, pose_cw: Isometry3<f64>) -> KfId {
         let id = self.next_kf;
         self.next_kf += 1;
-        self.keyframes.insert(id, Keyframe::from_measurement(id, m, pose_cw));
+        self.keyframes
+            .insert(id, Keyframe::from_measurement(id, m, pose_cw));
         id
     }
 
     /// Creates a map point observed by keypoint `kp` of keyframe `kf`.
-    pub fn add_point(&mut self, kf: KfId, kp: usize, position: Vector3<f64>, scale_factor: f64, n_levels: u32) -> PointId {
+    pub fn add_point(
+        &mut self,
+        kf: KfId,
+        kp: usize,
+        position: Vector3<f64>,
+        scale_factor: f64,
+        n_levels: u32,
+    ) -> PointId {
         let id = self.next_point;
         self.next_point += 1;
         let k = &self.keyframes[&kf];
@@ -151,9 +162,14 @@ impl Map {
         if old == new {
             return;
         }
-        let Some(p) = self.points.remove(&old) else { return };
+        let Some(p) = self.points.remove(&old) else {
+            return;
+        };
         for (kf, kp) in p.observations {
-            let already = self.points.get(&new).is_some_and(|n| n.observations.contains_key(&kf));
+            let already = self
+                .points
+                .get(&new)
+                .is_some_and(|n| n.observations.contains_key(&kf));
             if let Some(k) = self.keyframes.get_mut(&kf) {
                 k.points[kp] = if already { None } else { Some(new) };
             }
@@ -171,7 +187,9 @@ impl Map {
 
     /// Recomputes a point's normal, distance range and representative descriptor.
     pub fn update_point(&mut self, id: PointId, scale_factor: f64, n_levels: u32) {
-        let Some(p) = self.points.get(&id) else { return };
+        let Some(p) = self.points.get(&id) else {
+            return;
+        };
         let mut normal = Vector3::zeros();
         let mut descs = Vec::new();
         for (kf, &kp) in &p.observations {
@@ -181,11 +199,21 @@ impl Map {
         }
         let (ref_kf, ref_kp) = (p.first_kf, p.observations.get(&p.first_kf).copied());
         let (dist, level) = match (self.keyframes.get(&ref_kf), ref_kp) {
-            (Some(k), Some(kp)) => ((p.position - k.center()).norm(), k.keypoints[kp].octave as i32),
+            (Some(k), Some(kp)) => (
+                (p.position - k.center()).norm(),
+                k.keypoints[kp].octave as i32,
+            ),
             _ => {
-                let (kf, &kp) = p.observations.iter().next().expect("point has an observation");
+                let (kf, &kp) = p
+                    .observations
+                    .iter()
+                    .next()
+                    .expect("point has an observation");
                 let k = &self.keyframes[kf];
-                ((p.position - k.center()).norm(), k.keypoints[kp].octave as i32)
+                (
+                    (p.position - k.center()).norm(),
+                    k.keypoints[kp].octave as i32,
+                )
             }
         };
         let level_scale = scale_factor.powi(level);
@@ -228,7 +256,10 @@ impl Map {
                 o.covisibility.insert(kf, w);
             }
         }
-        self.keyframes.get_mut(&kf).expect("keyframe exists").covisibility = counts;
+        self.keyframes
+            .get_mut(&kf)
+            .expect("keyframe exists")
+            .covisibility = counts;
     }
 
     /// Keyframes observing any of `points`, plus their best covisible neighbours.

@@ -5,7 +5,10 @@
 use crate::aligner::backproject;
 use crate::config::MappingConfig;
 use crate::map::{KfId, Map, PointId};
-use crate::optim::{self, BaCamera, BaObservation, BaParams, BaPoint, BaProblem, Intrinsics, Observation, octave_information};
+use crate::optim::{
+    self, BaCamera, BaObservation, BaParams, BaPoint, BaProblem, Intrinsics, Observation,
+    octave_information,
+};
 use crate::preprocess::{Measurement, hamming};
 use crate::tracker::TrackResult;
 use nalgebra::Point3;
@@ -36,7 +39,14 @@ pub struct MergeReport {
 }
 
 impl MapMerger {
-    pub fn new(cfg: &MappingConfig, intr: Intrinsics, width: u32, height: u32, scale_factor: f64, n_levels: u32) -> Self {
+    pub fn new(
+        cfg: &MappingConfig,
+        intr: Intrinsics,
+        width: u32,
+        height: u32,
+        scale_factor: f64,
+        n_levels: u32,
+    ) -> Self {
         Self {
             cfg: cfg.clone(),
             intr,
@@ -59,28 +69,52 @@ impl MapMerger {
     /// its reference keyframe, or when few close points are tracked while many could be created,
     /// or when too many frames passed. Always requires some tracked points (> 15).
     pub fn need_keyframe(&self, map: &Map, m: &Measurement, track: &TrackResult) -> bool {
-        let Some(ref_kf) = track.reference_kf.and_then(|k| map.keyframes.get(&k)) else { return false };
+        let Some(ref_kf) = track.reference_kf.and_then(|k| map.keyframes.get(&k)) else {
+            return false;
+        };
         let min_obs = if map.keyframes.len() <= 2 { 2 } else { 3 };
         let ref_matches = ref_kf
             .points
             .iter()
             .flatten()
-            .filter(|p| map.points.get(p).is_some_and(|p| p.observations.len() >= min_obs))
+            .filter(|p| {
+                map.points
+                    .get(p)
+                    .is_some_and(|p| p.observations.len() >= min_obs)
+            })
             .count();
         let close = |i: usize| m.depth[i] > 0.0 && (m.depth[i] as f64) < self.cfg.max_point_depth_m;
-        let tracked_close = (0..m.len()).filter(|&i| close(i) && track.matches[i].is_some()).count();
-        let untracked_close = (0..m.len()).filter(|&i| close(i) && track.matches[i].is_none()).count();
+        let tracked_close = (0..m.len())
+            .filter(|&i| close(i) && track.matches[i].is_some())
+            .count();
+        let untracked_close = (0..m.len())
+            .filter(|&i| close(i) && track.matches[i].is_none())
+            .count();
         let need_close = tracked_close < 100 && untracked_close > 70;
-        let ratio = if map.keyframes.len() < 2 { 0.4 } else { self.cfg.keyframe_tracked_ratio };
-        let since = self.last_kf_frame.map_or(usize::MAX, |f| m.frame.saturating_sub(f));
+        let ratio = if map.keyframes.len() < 2 {
+            0.4
+        } else {
+            self.cfg.keyframe_tracked_ratio
+        };
+        let since = self
+            .last_kf_frame
+            .map_or(usize::MAX, |f| m.frame.saturating_sub(f));
         let weak = (track.n_inliers as f64) < ratio * ref_matches as f64 || need_close;
         (since >= self.cfg.keyframe_max_interval as usize || weak) && track.n_inliers > 15
     }
 
     /// Inserts the frame as a keyframe and runs local mapping on it.
-    pub fn insert_keyframe(&mut self, map: &mut Map, m: &Measurement, track: &TrackResult) -> MergeReport {
+    pub fn insert_keyframe(
+        &mut self,
+        map: &mut Map,
+        m: &Measurement,
+        track: &TrackResult,
+    ) -> MergeReport {
         let kf = map.add_keyframe(m, track.pose_cw);
-        let mut report = MergeReport { keyframe: kf, ..Default::default() };
+        let mut report = MergeReport {
+            keyframe: kf,
+            ..Default::default()
+        };
         for (i, p) in track.matches.iter().enumerate() {
             if let Some(p) = p {
                 if map.points.contains_key(p) {
@@ -92,15 +126,23 @@ impl MapMerger {
         let pose_wc = track.pose_cw.inverse();
         for i in 0..m.len() {
             let d = m.depth[i] as f64;
-            if d <= 0.0 || d > self.cfg.max_point_depth_m || map.keyframes[&kf].points[i].is_some() {
+            if d <= 0.0 || d > self.cfg.max_point_depth_m || map.keyframes[&kf].points[i].is_some()
+            {
                 continue;
             }
-            let pw = (pose_wc * Point3::from(backproject(&self.intr, &m.keypoints[i].un, d))).coords;
+            let pw =
+                (pose_wc * Point3::from(backproject(&self.intr, &m.keypoints[i].un, d))).coords;
             let id = map.add_point(kf, i, pw, self.scale_factor, self.n_levels);
             self.recent.push((id, kf));
             report.new_points += 1;
         }
-        for pid in map.keyframes[&kf].points.iter().flatten().copied().collect::<Vec<_>>() {
+        for pid in map.keyframes[&kf]
+            .points
+            .iter()
+            .flatten()
+            .copied()
+            .collect::<Vec<_>>()
+        {
             map.update_point(pid, self.scale_factor, self.n_levels);
         }
         map.update_covisibility(kf);
@@ -118,7 +160,9 @@ impl MapMerger {
         let mut culled = 0;
         let mut keep = Vec::new();
         for &(pid, born) in &self.recent {
-            let Some(p) = map.points.get(&pid) else { continue };
+            let Some(p) = map.points.get(&pid) else {
+                continue;
+            };
             let age = current.saturating_sub(born);
             if age >= 2 && p.observations.len() < 3 {
                 map.remove_point(pid);
@@ -146,12 +190,16 @@ impl MapMerger {
                 let k = &map.keyframes[&kf];
                 (k.pose_cw, k.center())
             };
-            let Some(p) = map.points.get(&pid) else { continue };
+            let Some(p) = map.points.get(&pid) else {
+                continue;
+            };
             if p.observations.contains_key(&kf) {
                 continue;
             }
             let pc = pose * Point3::from(p.position);
-            let Some(uv) = self.intr.project(&pc.coords) else { continue };
+            let Some(uv) = self.intr.project(&pc.coords) else {
+                continue;
+            };
             if uv.x < 0.0 || uv.y < 0.0 || uv.x >= self.width || uv.y >= self.height {
                 continue;
             }
@@ -159,7 +207,9 @@ impl MapMerger {
             if dist < 0.8 * p.min_distance || dist > 1.2 * p.max_distance {
                 continue;
             }
-            let level = ((p.max_distance / dist).ln() / self.scale_factor.ln()).ceil().clamp(0.0, self.n_levels as f64 - 1.0);
+            let level = ((p.max_distance / dist).ln() / self.scale_factor.ln())
+                .ceil()
+                .clamp(0.0, self.n_levels as f64 - 1.0);
             let r = 3.0 * self.scale_factor.powf(level);
             let k = &map.keyframes[&kf];
             let mut best = (u32::MAX, usize::MAX);
@@ -167,7 +217,8 @@ impl MapMerger {
                 // With depth, the point must also agree in depth (ORB-SLAM's stereo check).
                 let d = k.depth[i] as f64;
                 if d > 0.0 {
-                    let e = (k.keypoints[i].un - uv).norm_squared() * octave_information(k.keypoints[i].octave as u32);
+                    let e = (k.keypoints[i].un - uv).norm_squared()
+                        * octave_information(k.keypoints[i].octave as u32);
                     if e > optim::CHI2_RGBD || (d - pc.z).abs() > 0.05 * pc.z.max(0.5) {
                         continue;
                     }
@@ -222,28 +273,44 @@ impl MapMerger {
             }
         }
         let cams: Vec<KfId> = local.iter().chain(fixed.iter()).copied().collect();
-        let cam_index: BTreeMap<KfId, usize> = cams.iter().enumerate().map(|(i, &k)| (k, i)).collect();
+        let cam_index: BTreeMap<KfId, usize> =
+            cams.iter().enumerate().map(|(i, &k)| (k, i)).collect();
         let pts: Vec<PointId> = points.into_iter().collect();
         let mut problem = BaProblem {
             keyframes: cams
                 .iter()
-                .map(|k| BaCamera { pose_cw: map.keyframes[k].pose_cw, fixed: fixed.contains(k) || *k == 0 })
+                .map(|k| BaCamera {
+                    pose_cw: map.keyframes[k].pose_cw,
+                    fixed: fixed.contains(k) || *k == 0,
+                })
                 .collect(),
-            points: pts.iter().map(|p| BaPoint { position_w: map.points[p].position, fixed: false }).collect(),
+            points: pts
+                .iter()
+                .map(|p| BaPoint {
+                    position_w: map.points[p].position,
+                    fixed: false,
+                })
+                .collect(),
             observations: Vec::new(),
             intrinsics: self.intr,
         };
         let mut obs_ref: Vec<(PointId, KfId)> = Vec::new();
         for (pi, pid) in pts.iter().enumerate() {
             for (k, &kp) in &map.points[pid].observations {
-                let Some(&ci) = cam_index.get(k) else { continue };
+                let Some(&ci) = cam_index.get(k) else {
+                    continue;
+                };
                 let key = &map.keyframes[k];
                 let d = key.depth[kp] as f64;
                 let uv = key.keypoints[kp].un;
                 problem.observations.push(BaObservation {
                     camera: ci,
                     point: pi,
-                    obs: if d > 0.0 { Observation::Rgbd { uv, depth: d } } else { Observation::Mono { uv } },
+                    obs: if d > 0.0 {
+                        Observation::Rgbd { uv, depth: d }
+                    } else {
+                        Observation::Mono { uv }
+                    },
                     info: octave_information(key.keypoints[kp].octave as u32),
                 });
                 obs_ref.push((*pid, *k));
@@ -252,7 +319,10 @@ impl MapMerger {
         if problem.keyframes.iter().all(|c| c.fixed) {
             return;
         }
-        let params = BaParams { iterations: self.cfg.local_ba_iterations as usize, ..Default::default() };
+        let params = BaParams {
+            iterations: self.cfg.local_ba_iterations as usize,
+            ..Default::default()
+        };
         let Ok(r) = optim::local_ba::solve(&mut problem, &params) else {
             tracing::warn!("local BA failed at keyframe {kf}; map left unchanged");
             return;
@@ -271,7 +341,9 @@ impl MapMerger {
         // Drop outlier observations; points left with none disappear.
         for &o in &r.outliers {
             let (pid, k) = obs_ref[o];
-            let Some(p) = map.points.get_mut(&pid) else { continue };
+            let Some(p) = map.points.get_mut(&pid) else {
+                continue;
+            };
             if let Some(kp) = p.observations.remove(&k) {
                 if let Some(key) = map.keyframes.get_mut(&k) {
                     key.points[kp] = None;

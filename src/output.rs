@@ -152,7 +152,9 @@ impl RunOutputs {
     pub fn create(dir: &Path) -> Result<Self> {
         std::fs::create_dir_all(dir)
             .map_err(|e| Error::file(dir, format!("cannot create output folder: {e}")))?;
-        Ok(Self { dir: dir.to_path_buf() })
+        Ok(Self {
+            dir: dir.to_path_buf(),
+        })
     }
 
     pub fn path(&self, name: &str) -> PathBuf {
@@ -168,7 +170,9 @@ impl RunOutputs {
     }
 
     pub fn write_keyframes(&self, keyframes: &[(StampedPose, u32)]) -> Result<()> {
-        let mut s = String::from("# homing keyframes (camera-to-world)\n# timestamp tx ty tz qx qy qz qw map_id\n");
+        let mut s = String::from(
+            "# homing keyframes (camera-to-world)\n# timestamp tx ty tz qx qy qz qw map_id\n",
+        );
         for (p, map) in keyframes {
             s.push_str(&format_pose(p, Some(&map.to_string())));
             s.push('\n');
@@ -213,8 +217,19 @@ impl RunOutputs {
             let _ = writeln!(
                 s,
                 "{:.6},{:.6},{},{},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{},{}",
-                r.t_query, r.t_match, r.map_query, r.map_match, t.x, t.y, t.z, q.x, q.y, q.z, q.w,
-                r.inliers, r.verdict
+                r.t_query,
+                r.t_match,
+                r.map_query,
+                r.map_match,
+                t.x,
+                t.y,
+                t.z,
+                q.x,
+                q.y,
+                q.z,
+                q.w,
+                r.inliers,
+                r.verdict
             );
         }
         atomic_write(&self.path("closures.csv"), s.as_bytes())
@@ -232,7 +247,11 @@ impl RunOutputs {
 pub fn describe_camera(cam: &CameraConfig, src: &CameraSource) -> String {
     format!(
         "camera: {} {}x{} fx={} fy={} cx={} cy={} depth_scale={} — {src}",
-        if cam.name.is_empty() { "(unnamed)" } else { &cam.name },
+        if cam.name.is_empty() {
+            "(unnamed)"
+        } else {
+            &cam.name
+        },
         cam.width,
         cam.height,
         cam.fx,

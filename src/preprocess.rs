@@ -89,11 +89,24 @@ impl FeatureGrid {
                 cells[cy as usize * cols + cx as usize].push(i as u32);
             }
         }
-        Self { cols, rows, cell, cells }
+        Self {
+            cols,
+            rows,
+            cell,
+            cells,
+        }
     }
 
     /// Indices of keypoints within `r` pixels of (x, y) whose octave is in [min, max].
-    pub fn in_area(&self, kps: &[Keypoint], x: f64, y: f64, r: f64, min: u8, max: u8) -> Vec<usize> {
+    pub fn in_area(
+        &self,
+        kps: &[Keypoint],
+        x: f64,
+        y: f64,
+        r: f64,
+        min: u8,
+        max: u8,
+    ) -> Vec<usize> {
         let mut out = Vec::new();
         let c0 = ((x - r) / self.cell).floor().max(0.0) as usize;
         let r0 = ((y - r) / self.cell).floor().max(0.0) as usize;
@@ -162,7 +175,9 @@ impl Preprocessor {
             .map_err(cv_err("distortion"))?
             .try_clone()
             .map_err(cv_err("distortion"))?;
-        let scales = (0..cfg.n_levels).map(|l| cfg.scale_factor.powi(l as i32)).collect();
+        let scales = (0..cfg.n_levels)
+            .map(|l| cfg.scale_factor.powi(l as i32))
+            .collect();
         Ok(Self {
             orb_ini: make(cfg.ini_fast_threshold)?,
             orb_min: make(cfg.min_fast_threshold)?,
@@ -193,7 +208,8 @@ impl Preprocessor {
         self.orb_min
             .detect(&img, &mut weak, &cv::no_array())
             .map_err(cv_err("ORB detect"))?;
-        let mut kps = Vector::<KeyPoint>::from_iter(self.distribute(strong.to_vec(), weak.to_vec()));
+        let mut kps =
+            Vector::<KeyPoint>::from_iter(self.distribute(strong.to_vec(), weak.to_vec()));
         let mut desc = Mat::default();
         self.orb_ini
             .compute(&img, &mut kps, &mut desc)
@@ -233,7 +249,14 @@ impl Preprocessor {
             None => vec![0.0; keypoints.len()],
         };
         let grid = FeatureGrid::new(self.camera.width, self.camera.height, &keypoints);
-        Ok(Measurement { frame: frame.index, t: frame.t, keypoints, descriptors, depth, grid })
+        Ok(Measurement {
+            frame: frame.index,
+            t: frame.t,
+            keypoints,
+            descriptors,
+            depth,
+            grid,
+        })
     }
 
     /// Per level: cells of ~32 px (at that level); round-robin over cells by response until the
@@ -306,12 +329,25 @@ impl Preprocessor {
 
     fn undistort(&self, kps: &[KeyPoint]) -> Result<Vec<Vector2<f64>>> {
         if !self.camera.has_distortion() || kps.is_empty() {
-            return Ok(kps.iter().map(|k| Vector2::new(k.pt().x as f64, k.pt().y as f64)).collect());
+            return Ok(kps
+                .iter()
+                .map(|k| Vector2::new(k.pt().x as f64, k.pt().y as f64))
+                .collect());
         }
         let src = Vector::<Point2f>::from_iter(kps.iter().map(|k| k.pt()));
         let mut dst = Vector::<Point2f>::new();
-        opencv::calib3d::undistort_points(&src, &mut dst, &self.k, &self.dist, &cv::no_array(), &self.k)
-            .map_err(cv_err("undistortPoints"))?;
-        Ok(dst.iter().map(|p| Vector2::new(p.x as f64, p.y as f64)).collect())
+        opencv::calib3d::undistort_points(
+            &src,
+            &mut dst,
+            &self.k,
+            &self.dist,
+            &cv::no_array(),
+            &self.k,
+        )
+        .map_err(cv_err("undistortPoints"))?;
+        Ok(dst
+            .iter()
+            .map(|p| Vector2::new(p.x as f64, p.y as f64))
+            .collect())
     }
 }

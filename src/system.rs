@@ -4,16 +4,16 @@
 //!
 
 use crate::config::{Config, resolve_camera};
+use crate::control::StateMachine;
 use crate::error::{Error, Result};
 use crate::eval::{self, Alignment, RpeUnit};
 use crate::io::perturb::{PerturbationSpec, PerturbedSequence};
 use crate::io::tum::{FrameSource, StampedPose, TumSequence};
+use crate::map::KfId;
+use crate::optim::Intrinsics;
 use crate::output::{
     ClosureRow, RunOutputs, StateRow, Summary, Timing, Transition, describe_camera,
 };
-use crate::control::StateMachine;
-use crate::map::KfId;
-use crate::optim::Intrinsics;
 use crate::preprocess::Preprocessor;
 use nalgebra::Isometry3;
 use std::path::PathBuf;
@@ -114,36 +114,80 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
         }
         let transition = match (states.is_empty(), out.transition) {
             (_, Some(t)) => Some(t),
-            (true, None) => Some(Transition { from: "(start)".into(), trigger: "start".into() }),
+            (true, None) => Some(Transition {
+                from: "(start)".into(),
+                trigger: "start".into(),
+            }),
             (false, None) => None,
         };
-        states.push(StateRow { frame: frame.index, t: frame.t, state: out.state.clone(), transition, flags: out.flags });
+        states.push(StateRow {
+            frame: frame.index,
+            t: frame.t,
+            state: out.state.clone(),
+            transition,
+            flags: out.flags,
+        });
         if delivered % 100 == 0 {
-            tracing::info!("frame {delivered}/{n} state {} keyframes {}", out.state, machine.maps.iter().map(|m| m.keyframes.len()).sum::<usize>());
+            tracing::info!(
+                "frame {delivered}/{n} state {} keyframes {}",
+                out.state,
+                machine
+                    .maps
+                    .iter()
+                    .map(|m| m.keyframes.len())
+                    .sum::<usize>()
+            );
         }
     }
     // End of data (or a fatal input error): Interruptible → Final.
-    let trigger = if failure.is_some() { "input_error" } else { "end_of_data" };
+    let trigger = if failure.is_some() {
+        "input_error"
+    } else {
+        "end_of_data"
+    };
     let fin = machine.finish(trigger);
     if let Some(last) = states.last() {
         let (frame, t) = (last.frame, last.t);
-        states.push(StateRow { frame, t, state: fin.state.clone(), transition: fin.transition, flags: fin.flags });
+        states.push(StateRow {
+            frame,
+            t,
+            state: fin.state.clone(),
+            transition: fin.transition,
+            flags: fin.flags,
+        });
     }
     let state = fin.state;
     let trajectory: Vec<StampedPose> = relative
         .iter()
         .map(|(t, map, kf, rel)| {
             let kf_pose = machine.maps[*map as usize].keyframes[kf].pose_cw;
-            StampedPose { t: *t, pose: (rel * kf_pose).inverse() }
+            StampedPose {
+                t: *t,
+                pose: (rel * kf_pose).inverse(),
+            }
         })
         .collect();
     let keyframes: Vec<(StampedPose, u32)> = machine
         .maps
         .iter()
-        .flat_map(|m| m.keyframes.values().map(move |k| (StampedPose { t: k.t, pose: k.pose_cw.inverse() }, m.id)))
+        .flat_map(|m| {
+            m.keyframes.values().map(move |k| {
+                (
+                    StampedPose {
+                        t: k.t,
+                        pose: k.pose_cw.inverse(),
+                    },
+                    m.id,
+                )
+            })
+        })
         .collect();
 
-    let evaluation = if opts.eval { evaluate(&seq, &trajectory, &spec)? } else { None };
+    let evaluation = if opts.eval {
+        evaluate(&seq, &trajectory, &spec)?
+    } else {
+        None
+    };
     let summary = Summary {
         homing_version: env!("CARGO_PKG_VERSION"),
         sequence: opts.sequence.clone(),
@@ -154,7 +198,10 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
         keyframes: keyframes.len(),
         maps: machine.maps.len(),
         closures_accepted: closures.iter().filter(|c| c.verdict == "accepted").count(),
-        closures_rejected: closures.iter().filter(|c| c.verdict.starts_with("rejected")).count(),
+        closures_rejected: closures
+            .iter()
+            .filter(|c| c.verdict.starts_with("rejected"))
+            .count(),
         final_state: state,
         perturbations: perturbed.plan.clone(),
         camera,
@@ -183,9 +230,15 @@ fn evaluate(
     spec: &PerturbationSpec,
 ) -> Result<Option<serde_json::Value>> {
     let Some(gt) = seq.groundtruth()? else {
-        return Ok(Some(serde_json::json!({"note": "the sequence has no groundtruth.txt"})));
+        return Ok(Some(
+            serde_json::json!({"note": "the sequence has no groundtruth.txt"}),
+        ));
     };
-    let align = if spec.mono { Alignment::Sim3 } else { Alignment::Se3 };
+    let align = if spec.mono {
+        Alignment::Sim3
+    } else {
+        Alignment::Se3
+    };
     let stamps: Vec<f64> = seq.frames.iter().map(|f| f.t).collect();
     let eligible = eval::eligible_stamps(&stamps, &gt, 0.02);
     let coverage = eval::coverage(&eligible, est, 0.02);
@@ -202,4 +255,3 @@ fn evaluate(
         .map(Some)
         .map_err(|e| Error::invalid(e.to_string()))
 }
-

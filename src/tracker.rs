@@ -9,7 +9,9 @@
 use crate::aligner::pnp_ransac;
 use crate::config::TrackerConfig;
 use crate::map::{KfId, Map, PointId};
-use crate::optim::{Intrinsics, Observation, PoseObservation, PoseParams, octave_information, refine_pose};
+use crate::optim::{
+    Intrinsics, Observation, PoseObservation, PoseParams, octave_information, refine_pose,
+};
 use crate::preprocess::{Descriptor, Measurement, hamming};
 use nalgebra::{Isometry3, Vector2, Vector3};
 
@@ -58,7 +60,14 @@ struct Candidate {
 }
 
 impl Tracker {
-    pub fn new(cfg: &TrackerConfig, intr: Intrinsics, width: u32, height: u32, scale_factor: f64, n_levels: u32) -> Self {
+    pub fn new(
+        cfg: &TrackerConfig,
+        intr: Intrinsics,
+        width: u32,
+        height: u32,
+        scale_factor: f64,
+        n_levels: u32,
+    ) -> Self {
         Self {
             cfg: cfg.clone(),
             intr,
@@ -73,10 +82,19 @@ impl Tracker {
     }
 
     /// Starts tracking from a known pose (after initialisation or a relocalization).
-    pub fn reset(&mut self, pose_cw: Isometry3<f64>, matches: &[Option<PointId>], reference_kf: KfId) {
+    pub fn reset(
+        &mut self,
+        pose_cw: Isometry3<f64>,
+        matches: &[Option<PointId>],
+        reference_kf: KfId,
+    ) {
         self.last_pose = Some(pose_cw);
         self.velocity = None;
-        self.last_matches = matches.iter().enumerate().filter_map(|(i, m)| m.map(|p| (i, p))).collect();
+        self.last_matches = matches
+            .iter()
+            .enumerate()
+            .filter_map(|(i, m)| m.map(|p| (i, p)))
+            .collect();
         self.reference_kf = Some(reference_kf);
     }
 
@@ -111,11 +129,22 @@ impl Tracker {
             self.velocity = Some(v);
         }
         self.last_pose = Some(pose);
-        self.last_matches = matches.iter().enumerate().filter_map(|(i, p)| p.map(|p| (i, p))).collect();
+        self.last_matches = matches
+            .iter()
+            .enumerate()
+            .filter_map(|(i, p)| p.map(|p| (i, p)))
+            .collect();
         if reference_kf.is_some() {
             self.reference_kf = reference_kf;
         }
-        TrackResult { pose_cw: pose, matches, n_inliers, able_to_track: true, method, reference_kf: self.reference_kf }
+        TrackResult {
+            pose_cw: pose,
+            matches,
+            n_inliers,
+            able_to_track: true,
+            method,
+            reference_kf: self.reference_kf,
+        }
     }
 
     fn lost(&mut self, m: &Measurement) -> TrackResult {
@@ -198,12 +227,15 @@ impl Tracker {
             .iter()
             .enumerate()
             .filter_map(|(i, p)| p.map(|p| (map.points[&p].position, m.keypoints[i].un, i)))
-            .fold((vec![], vec![], vec![]), |(mut a, mut b, mut c), (p, u, i)| {
-                a.push(p);
-                b.push(u);
-                c.push(i);
-                (a, b, c)
-            });
+            .fold(
+                (vec![], vec![], vec![]),
+                |(mut a, mut b, mut c), (p, u, i)| {
+                    a.push(p);
+                    b.push(u);
+                    c.push(i);
+                    (a, b, c)
+                },
+            );
         let pnp = pnp_ransac(&pts, &uv, &self.intr, 4.0, 15).ok().flatten()?;
         let mut inl_matches = vec![None; m.len()];
         for (k, &i) in idx.iter().enumerate() {
@@ -233,7 +265,10 @@ impl Tracker {
                 }
             }
         }
-        let cands: Vec<Candidate> = cand_ids.iter().filter_map(|p| map.points.get(p).map(candidate)).collect();
+        let cands: Vec<Candidate> = cand_ids
+            .iter()
+            .filter_map(|p| map.points.get(p).map(candidate))
+            .collect();
         self.search_by_projection(m, &pose, &cands, 3.0, &mut matches, true);
         self.refine(m, map, &pose, matches)
     }
@@ -246,7 +281,9 @@ impl Tracker {
         init: &Isometry3<f64>,
         matches: Vec<Option<PointId>>,
     ) -> (Isometry3<f64>, Vec<Option<PointId>>, usize) {
-        let idx: Vec<usize> = (0..m.len()).filter(|&i| matches[i].is_some_and(|p| map.points.contains_key(&p))).collect();
+        let idx: Vec<usize> = (0..m.len())
+            .filter(|&i| matches[i].is_some_and(|p| map.points.contains_key(&p)))
+            .collect();
         let obs: Vec<PoseObservation> = idx
             .iter()
             .map(|&i| {
@@ -254,7 +291,14 @@ impl Tracker {
                 let d = m.depth[i] as f64;
                 PoseObservation {
                     point_w: map.points[&matches[i].expect("filtered")].position,
-                    obs: if d > 0.0 { Observation::Rgbd { uv: kp.un, depth: d } } else { Observation::Mono { uv: kp.un } },
+                    obs: if d > 0.0 {
+                        Observation::Rgbd {
+                            uv: kp.un,
+                            depth: d,
+                        }
+                    } else {
+                        Observation::Mono { uv: kp.un }
+                    },
                     info: octave_information(kp.octave as u32),
                 }
             })
@@ -283,7 +327,8 @@ impl Tracker {
     ) -> usize {
         let center = pose.inverse().translation.vector;
         let mut best = vec![u32::MAX; m.len()];
-        let already: std::collections::BTreeSet<PointId> = matches.iter().flatten().copied().collect();
+        let already: std::collections::BTreeSet<PointId> =
+            matches.iter().flatten().copied().collect();
         let mut n = 0;
         let n_levels = self.scales.len() as i32;
         let log_scale = self.scales.get(1).copied().unwrap_or(1.2).ln();
@@ -292,7 +337,9 @@ impl Tracker {
                 continue;
             }
             let pc = pose * nalgebra::Point3::from(c.position);
-            let Some(uv) = self.intr.project(&pc.coords) else { continue };
+            let Some(uv) = self.intr.project(&pc.coords) else {
+                continue;
+            };
             if uv.x < 0.0 || uv.y < 0.0 || uv.x >= self.width || uv.y >= self.height {
                 continue;
             }
@@ -305,7 +352,9 @@ impl Tracker {
             if ratio && view_cos < 0.5 {
                 continue;
             }
-            let level = ((c.max_distance / dist).ln() / log_scale).ceil().clamp(0.0, (n_levels - 1) as f64) as i32;
+            let level = ((c.max_distance / dist).ln() / log_scale)
+                .ceil()
+                .clamp(0.0, (n_levels - 1) as f64) as i32;
             let view = if view_cos > 0.998 { 1.0 } else { 1.5 };
             let r = radius * view * self.scales[level as usize];
             let lo = (level - 1).max(0) as u8;
@@ -361,5 +410,8 @@ pub fn reference_keyframe(map: &Map, matches: &[Option<PointId>]) -> Option<KfId
             }
         }
     }
-    votes.into_iter().max_by(|a, b| a.1.cmp(&b.1).then(b.0.cmp(&a.0))).map(|(k, _)| k)
+    votes
+        .into_iter()
+        .max_by(|a, b| a.1.cmp(&b.1).then(b.0.cmp(&a.0)))
+        .map(|(k, _)| k)
 }

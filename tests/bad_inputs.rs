@@ -5,14 +5,24 @@ use common::{assert_clear_error, homing, tum_folder};
 use std::fs;
 
 fn run_on(dir: &std::path::Path, out: &std::path::Path) -> (bool, String, String) {
-    homing(&["run", "--sequence", dir.to_str().unwrap(), "--out", out.to_str().unwrap()])
+    homing(&[
+        "run",
+        "--sequence",
+        dir.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ])
 }
 
 #[test]
 fn truncated_png() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tum_folder(tmp.path(), "seq", 5);
-    let victim = fs::read_dir(dir.join("rgb")).unwrap().map(|e| e.unwrap().path()).min().unwrap();
+    let victim = fs::read_dir(dir.join("rgb"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .min()
+        .unwrap();
     let bytes = fs::read(&victim).unwrap();
     fs::write(&victim, &bytes[..bytes.len() / 2]).unwrap();
     let out = tmp.path().join("out");
@@ -27,18 +37,31 @@ fn truncated_png() {
 fn eight_bit_depth() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tum_folder(tmp.path(), "seq", 3);
-    let victim = fs::read_dir(dir.join("depth")).unwrap().map(|e| e.unwrap().path()).min().unwrap();
-    image::GrayImage::new(common::W, common::H).save(&victim).unwrap();
+    let victim = fs::read_dir(dir.join("depth"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .min()
+        .unwrap();
+    image::GrayImage::new(common::W, common::H)
+        .save(&victim)
+        .unwrap();
     let (ok, _, err) = run_on(&dir, &tmp.path().join("out"));
     assert_clear_error(ok, &err, "16-bit");
-    assert!(err.contains(victim.file_name().unwrap().to_str().unwrap()), "{err}");
+    assert!(
+        err.contains(victim.file_name().unwrap().to_str().unwrap()),
+        "{err}"
+    );
 }
 
 #[test]
 fn wrong_image_size() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tum_folder(tmp.path(), "seq", 3);
-    let victim = fs::read_dir(dir.join("rgb")).unwrap().map(|e| e.unwrap().path()).min().unwrap();
+    let victim = fs::read_dir(dir.join("rgb"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .min()
+        .unwrap();
     image::RgbImage::new(10, 10).save(&victim).unwrap();
     let (ok, _, err) = run_on(&dir, &tmp.path().join("out"));
     assert_clear_error(ok, &err, "10x10");
@@ -48,7 +71,11 @@ fn wrong_image_size() {
 fn missing_image() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tum_folder(tmp.path(), "seq", 3);
-    let victim = fs::read_dir(dir.join("rgb")).unwrap().map(|e| e.unwrap().path()).max().unwrap();
+    let victim = fs::read_dir(dir.join("rgb"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .max()
+        .unwrap();
     fs::remove_file(&victim).unwrap();
     let (ok, _, err) = run_on(&dir, &tmp.path().join("out"));
     assert_clear_error(ok, &err, victim.file_name().unwrap().to_str().unwrap());
@@ -57,8 +84,11 @@ fn missing_image() {
 /// Rewrites line `n` (1-based, counting comment lines) of a text file.
 fn edit_line(path: &std::path::Path, n: usize, f: impl Fn(&str) -> String) {
     let text = fs::read_to_string(path).unwrap();
-    let lines: Vec<String> =
-        text.lines().enumerate().map(|(i, l)| if i + 1 == n { f(l) } else { l.to_string() }).collect();
+    let lines: Vec<String> = text
+        .lines()
+        .enumerate()
+        .map(|(i, l)| if i + 1 == n { f(l) } else { l.to_string() })
+        .collect();
     fs::write(path, lines.join("\n") + "\n").unwrap();
 }
 
@@ -66,10 +96,26 @@ fn edit_line(path: &std::path::Path, n: usize, f: impl Fn(&str) -> String) {
 fn list_file_errors_name_file_and_line() {
     // rgb.txt: 2 comment lines, then frames from line 3.
     let cases: [(&str, Box<dyn Fn(&str) -> String>, &str); 4] = [
-        ("missing column", Box::new(|l: &str| l.split_whitespace().next().unwrap().to_string()), "expected 2 columns"),
-        ("NaN", Box::new(|l: &str| format!("NaN {}", l.split_whitespace().nth(1).unwrap())), "not a finite number"),
-        ("duplicated", Box::new(|_: &str| "1000.000000 rgb/x.png".to_string()), "duplicated"),
-        ("unsorted", Box::new(|_: &str| "999.0 rgb/x.png".to_string()), "not increasing"),
+        (
+            "missing column",
+            Box::new(|l: &str| l.split_whitespace().next().unwrap().to_string()),
+            "expected 2 columns",
+        ),
+        (
+            "NaN",
+            Box::new(|l: &str| format!("NaN {}", l.split_whitespace().nth(1).unwrap())),
+            "not a finite number",
+        ),
+        (
+            "duplicated",
+            Box::new(|_: &str| "1000.000000 rgb/x.png".to_string()),
+            "duplicated",
+        ),
+        (
+            "unsorted",
+            Box::new(|_: &str| "999.0 rgb/x.png".to_string()),
+            "not increasing",
+        ),
     ];
     for (what, f, needle) in cases {
         let tmp = tempfile::tempdir().unwrap();
@@ -87,14 +133,36 @@ fn trajectory_errors_name_file_and_line() {
     let dir = tum_folder(tmp.path(), "seq", 4);
     let gt = dir.join("groundtruth.txt");
     for (f, needle) in [
-        (Box::new(|l: &str| l.rsplit_once(' ').unwrap().0.to_string()) as Box<dyn Fn(&str) -> String>, "expected 8 columns"),
-        (Box::new(|l: &str| l.replacen(" ", " nan ", 1).rsplit_once(' ').unwrap().0.to_string()), "not a finite number"),
-        (Box::new(|_: &str| "1000.0 0 0 0 0 0 0 2".to_string()), "norm"),
+        (
+            Box::new(|l: &str| l.rsplit_once(' ').unwrap().0.to_string())
+                as Box<dyn Fn(&str) -> String>,
+            "expected 8 columns",
+        ),
+        (
+            Box::new(|l: &str| {
+                l.replacen(" ", " nan ", 1)
+                    .rsplit_once(' ')
+                    .unwrap()
+                    .0
+                    .to_string()
+            }),
+            "not a finite number",
+        ),
+        (
+            Box::new(|_: &str| "1000.0 0 0 0 0 0 0 2".to_string()),
+            "norm",
+        ),
     ] {
         let est = tmp.path().join("est.txt");
         fs::copy(&gt, &est).unwrap();
         edit_line(&est, 5, f);
-        let (ok, _, err) = homing(&["eval", "--gt", gt.to_str().unwrap(), "--est", est.to_str().unwrap()]);
+        let (ok, _, err) = homing(&[
+            "eval",
+            "--gt",
+            gt.to_str().unwrap(),
+            "--est",
+            est.to_str().unwrap(),
+        ]);
         assert_clear_error(ok, &err, "est.txt:5:");
         assert!(err.contains(needle), "{err}");
     }
@@ -123,10 +191,22 @@ fn unknown_config_key_and_bad_values() {
     let dir = tum_folder(tmp.path(), "seq", 2);
     let cfg = tmp.path().join("bad.toml");
     fs::write(&cfg, "[tracker]\nmin_inliers = 30\nmin_inlers = 3\n").unwrap();
-    let (ok, _, err) = homing(&["run", "--sequence", dir.to_str().unwrap(), "--out", tmp.path().join("o").to_str().unwrap(), "--config", cfg.to_str().unwrap()]);
+    let (ok, _, err) = homing(&[
+        "run",
+        "--sequence",
+        dir.to_str().unwrap(),
+        "--out",
+        tmp.path().join("o").to_str().unwrap(),
+        "--config",
+        cfg.to_str().unwrap(),
+    ]);
     assert_clear_error(ok, &err, "bad.toml:3:");
     assert!(err.contains("min_inlers"), "{err}");
-    fs::write(&cfg, "[camera]\nfx = -5.0\nfy = 1.0\ncx = 1.0\ncy = 1.0\nwidth = 64\nheight = 48\n").unwrap();
+    fs::write(
+        &cfg,
+        "[camera]\nfx = -5.0\nfy = 1.0\ncx = 1.0\ncy = 1.0\nwidth = 64\nheight = 48\n",
+    )
+    .unwrap();
     let (ok, _, err) = homing(&["config", "--check", cfg.to_str().unwrap()]);
     assert_clear_error(ok, &err, "bad.toml:2: camera.fx");
     fs::write(&cfg, "[camera\nfx = 1\n").unwrap();
@@ -145,10 +225,19 @@ fn bad_perturbation_arguments() {
         (vec!["--fault", "purple@1"], "unknown fault kind"),
         (vec!["--fault-rate", "noise:2"], "probability"),
     ] {
-        let mut a = vec!["run", "--sequence", dir.to_str().unwrap(), "--out", out.to_str().unwrap()];
+        let mut a = vec![
+            "run",
+            "--sequence",
+            dir.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ];
         a.extend(args);
         let (ok, _, err) = homing(&a);
-        assert!(!ok && !err.contains("panicked") && err.contains(needle), "{err}");
+        assert!(
+            !ok && !err.contains("panicked") && err.contains(needle),
+            "{err}"
+        );
     }
 }
 

@@ -8,7 +8,9 @@ use serde_json::Value;
 use std::path::{Path, PathBuf};
 
 fn fixture(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/eval").join(name)
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/fixtures/eval")
+        .join(name)
 }
 
 fn check(stats: &eval::Stats, expected: &Value, what: &str, tol: f64) {
@@ -44,8 +46,18 @@ fn ate_and_rpe_agree_with_evo() {
         let assoc = eval::associate_and_align(&gt, &est, Alignment::None, 0.02).unwrap();
         for delta in [1.0, 30.0] {
             let r = eval::rpe(&assoc, delta, RpeUnit::Frames, false).unwrap();
-            check(&r.trans, &case[format!("rpe_trans_f{delta}")], &format!("{name} rpe trans {delta}"), 1e-6);
-            check(&r.rot_deg, &case[format!("rpe_rot_f{delta}")], &format!("{name} rpe rot {delta}"), 1e-5);
+            check(
+                &r.trans,
+                &case[format!("rpe_trans_f{delta}")],
+                &format!("{name} rpe trans {delta}"),
+                1e-6,
+            );
+            check(
+                &r.rot_deg,
+                &case[format!("rpe_rot_f{delta}")],
+                &format!("{name} rpe rot {delta}"),
+                1e-5,
+            );
         }
     }
 }
@@ -66,19 +78,28 @@ fn exact_copy_gives_zero_and_sim3_recovers_scale() {
         .iter()
         .map(|p| {
             let mut q = motion * p.pose;
-            q.translation.vector = motion.rotation * (0.5 * p.pose.translation.vector) + motion.translation.vector;
+            q.translation.vector =
+                motion.rotation * (0.5 * p.pose.translation.vector) + motion.translation.vector;
             homing::io::tum::StampedPose { t: p.t, pose: q }
         })
         .collect();
     let assoc = eval::associate_and_align(&gt, &half, Alignment::Sim3, 0.02).unwrap();
-    assert!((assoc.alignment.scale - 2.0).abs() < 1e-9, "{}", assoc.alignment.scale);
+    assert!(
+        (assoc.alignment.scale - 2.0).abs() < 1e-9,
+        "{}",
+        assoc.alignment.scale
+    );
     assert!(eval::ate(&assoc, Alignment::Sim3).stats.max < 1e-9);
     let se3 = eval::associate_and_align(&gt, &half, Alignment::Se3, 0.02).unwrap();
     assert!(eval::ate(&se3, Alignment::Se3).stats.rmse > 0.01);
     // The noisy half-scale fixture: the noise biases the scale estimate slightly low.
     let noisy = read_trajectory(&fixture("est_scale0.5.txt")).unwrap();
     let assoc = eval::associate_and_align(&gt, &noisy, Alignment::Sim3, 0.02).unwrap();
-    assert!((assoc.alignment.scale - 2.0).abs() < 0.03, "{}", assoc.alignment.scale);
+    assert!(
+        (assoc.alignment.scale - 2.0).abs() < 0.03,
+        "{}",
+        assoc.alignment.scale
+    );
     // Ground truth against itself: 0 in every alignment.
     for align in [Alignment::Se3, Alignment::Sim3, Alignment::None] {
         let assoc = eval::associate_and_align(&gt, &gt, align, 0.02).unwrap();

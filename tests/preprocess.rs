@@ -30,7 +30,12 @@ fn textured_frame(seed: u64) -> Frame {
     for (i, d) in depth.data.iter_mut().enumerate() {
         *d = 1.0 + (i % 640) as f32 / 640.0;
     }
-    Frame { index: 0, t: 0.0, rgb: img, depth: Some(depth) }
+    Frame {
+        index: 0,
+        t: 0.0,
+        rgb: img,
+        depth: Some(depth),
+    }
 }
 
 fn camera(distorted: bool) -> CameraConfig {
@@ -54,7 +59,10 @@ fn orb_count_and_spread() {
     // Every cell of a 4x4 grid has features, and the busy corner does not take them all.
     assert!(cells.iter().all(|&c| c >= 15), "{cells:?}");
     assert!(cells[0] < m.len() / 4, "{cells:?}");
-    assert!(m.keypoints.iter().any(|k| k.octave >= 4), "no features on coarse levels");
+    assert!(
+        m.keypoints.iter().any(|k| k.octave >= 4),
+        "no features on coarse levels"
+    );
     // Depth under each keypoint: the test depth ramps with x.
     for (k, &d) in m.keypoints.iter().zip(&m.depth) {
         let expect = 1.0 + k.raw.x.round() as f32 / 640.0;
@@ -80,6 +88,10 @@ fn undistortion_moves_keypoints_as_the_model_says() {
         let xd = x * radial + 2.0 * cam.p1 * x * y + cam.p2 * (r2 + 2.0 * x * x);
         let yd = y * radial + cam.p1 * (r2 + 2.0 * y * y) + 2.0 * cam.p2 * x * y;
         let (u, v) = (cam.fx * xd + cam.cx, cam.fy * yd + cam.cy);
-        assert!((u - k.raw.x).abs() < 0.05 && (v - k.raw.y).abs() < 0.05, "{u},{v} vs {:?}", k.raw);
+        assert!(
+            (u - k.raw.x).abs() < 0.05 && (v - k.raw.y).abs() < 0.05,
+            "{u},{v} vs {:?}",
+            k.raw
+        );
     }
 }

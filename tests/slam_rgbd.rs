@@ -38,7 +38,15 @@ fn desk_small_tracks_every_frame() {
     let states = std::fs::read_to_string(out.join("states.csv")).unwrap();
     let rows: Vec<&str> = states.lines().skip(1).collect();
     assert!(rows[0].contains(",Idle,Init,initialized,"), "{}", rows[0]);
-    assert!(rows[1].contains(",Mapping,Idle,able_to_track,"), "{}", rows[1]);
-    assert!(rows[2..rows.len() - 1].iter().all(|r| r.contains(",Mapping,,,")));
+    assert!(
+        rows[1].contains(",Mapping,Idle,able_to_track,"),
+        "{}",
+        rows[1]
+    );
+    assert!(
+        rows[2..rows.len() - 1]
+            .iter()
+            .all(|r| r.contains(",Mapping,,,"))
+    );
     assert!(rows.last().unwrap().contains(",Final,Mapping,end_of_data,"));
 }

@@ -398,8 +398,22 @@ fn bad_cli_input_is_an_error_not_a_panic() {
     assert!(parse(&["synth", "--scenario", "desk", "--out", "x", "--seed", "-3"]).is_err());
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().to_str().unwrap();
-    assert!(run(parse(&["synth", "--scenario", "no-such-scenario", "--out", out]).unwrap()).is_err());
-    assert!(run(parse(&["synth", "--scenario", "desk", "--out", out, "--max-range", "0"]).unwrap()).is_err());
+    assert!(
+        run(parse(&["synth", "--scenario", "no-such-scenario", "--out", out]).unwrap()).is_err()
+    );
+    assert!(
+        run(parse(&[
+            "synth",
+            "--scenario",
+            "desk",
+            "--out",
+            out,
+            "--max-range",
+            "0"
+        ])
+        .unwrap())
+        .is_err()
+    );
     assert!(run(parse(&["contact-sheet", out, "--out", "x.png"]).unwrap()).is_err()); // no rgb.txt
     assert!(
         run(parse(&["contact-sheet", out, "--every", "0", "--out", "x.png"]).unwrap()).is_err()

@@ -79,7 +79,10 @@ impl StateMachine {
         let from = self.state_name();
         self.state = to;
         tracing::debug!("{from} -> {} on {trigger}", self.state_name());
-        Some(Transition { from, trigger: trigger.into() })
+        Some(Transition {
+            from,
+            trigger: trigger.into(),
+        })
     }
 
     /// Processes one measurement in the current state.
@@ -90,7 +93,9 @@ impl StateMachine {
             State::Final => {}
             State::Init => {
                 let id = self.maps.len() as u32;
-                if let Some((map, kf)) = timing.time("initialize", || self.initializer.try_initialize(m, id)) {
+                if let Some((map, kf)) =
+                    timing.time("initialize", || self.initializer.try_initialize(m, id))
+                {
                     let matches = map.keyframes[&kf].points.clone();
                     self.tracker.reset(Isometry3::identity(), &matches, kf);
                     self.merger.started(m.frame);
@@ -115,23 +120,43 @@ impl StateMachine {
                         let r = timing.time("map", || self.merger.insert_keyframe(map, m, &track));
                         tracing::debug!(
                             "keyframe {} at frame {}: {} new points, {} fused, {} culled, BA {:.1} -> {:.1} ({} outliers)",
-                            r.keyframe, m.frame, r.new_points, r.fused, r.culled, r.ba_initial_cost, r.ba_final_cost, r.ba_outliers
+                            r.keyframe,
+                            m.frame,
+                            r.new_points,
+                            r.fused,
+                            r.culled,
+                            r.ba_initial_cost,
+                            r.ba_final_cost,
+                            r.ba_outliers
                         );
                         self.tracker.reference_kf = Some(r.keyframe);
                     }
-                    let kf = track.reference_kf.or(self.tracker.reference_kf).unwrap_or(0);
+                    let kf = track
+                        .reference_kf
+                        .or(self.tracker.reference_kf)
+                        .unwrap_or(0);
                     pose = Some((track.pose_cw, map_id as u32, kf));
                 } else if self.state == State::Core {
                     transition = self.go(State::Idle, "!able_to_track");
                 }
             }
         }
-        StepOutput { state: self.state_name(), transition, flags: self.flags, pose }
+        StepOutput {
+            state: self.state_name(),
+            transition,
+            flags: self.flags,
+            pose,
+        }
     }
 
     /// Interruptible → Final (end of data or user stop).
     pub fn finish(&mut self, trigger: &str) -> StepOutput {
         let transition = self.go(State::Final, trigger);
-        StepOutput { state: self.state_name(), transition, flags: self.flags, pose: None }
+        StepOutput {
+            state: self.state_name(),
+            transition,
+            flags: self.flags,
+            pose: None,
+        }
     }
 }

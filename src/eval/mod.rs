@@ -60,7 +60,11 @@ impl Stats {
         let mut s = e.to_vec();
         s.sort_by(|a, b| a.total_cmp(b));
         let m = s.len() / 2;
-        let median = if s.len() % 2 == 0 { 0.5 * (s[m - 1] + s[m]) } else { s[m] };
+        let median = if s.len() % 2 == 0 {
+            0.5 * (s[m - 1] + s[m])
+        } else {
+            s[m]
+        };
         Some(Self {
             rmse: (sse / n).sqrt(),
             mean,
@@ -120,7 +124,12 @@ pub fn associate_and_align(
         let rot = nalgebra::UnitQuaternion::from_rotation_matrix(&alignment.rotation) * p.rotation;
         *p = Isometry3::from_parts(Translation3::from(tr), rot);
     }
-    Ok(Associated { t, reference, estimate, alignment })
+    Ok(Associated {
+        t,
+        reference,
+        estimate,
+        alignment,
+    })
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -166,13 +175,17 @@ pub struct RpeResult {
 /// Relative pose error over pose pairs `delta` apart (see the module doc for the pairing).
 pub fn rpe(assoc: &Associated, delta: f64, unit: RpeUnit, all_pairs: bool) -> Result<RpeResult> {
     if !(delta > 0.0 && delta.is_finite()) {
-        return Err(Error::invalid(format!("--rpe-delta must be positive, got {delta}")));
+        return Err(Error::invalid(format!(
+            "--rpe-delta must be positive, got {delta}"
+        )));
     }
     let n = assoc.t.len();
     let pairs: Vec<(usize, usize)> = match unit {
         RpeUnit::Frames => {
             if delta.fract() != 0.0 {
-                return Err(Error::invalid(format!("--rpe-delta {delta} frames must be a whole number")));
+                return Err(Error::invalid(format!(
+                    "--rpe-delta {delta} frames must be a whole number"
+                )));
             }
             let d = delta as usize;
             if all_pairs {
@@ -191,7 +204,9 @@ pub fn rpe(assoc: &Associated, delta: f64, unit: RpeUnit, all_pairs: bool) -> Re
                     .flatten()
                     .filter(|&j| j > i)
                     .min_by(|&a, &b| {
-                        (assoc.t[a] - target).abs().total_cmp(&(assoc.t[b] - target).abs())
+                        (assoc.t[a] - target)
+                            .abs()
+                            .total_cmp(&(assoc.t[b] - target).abs())
                     })?;
                 ((assoc.t[best] - target).abs() <= 0.1 * delta).then_some((i, best))
             })
@@ -234,7 +249,10 @@ pub fn coverage(eligible: &[f64], est: &[StampedPose], max_dt: f64) -> f64 {
         return 0.0;
     }
     let te: Vec<f64> = est.iter().map(|p| p.t).collect();
-    let covered = eligible.iter().filter(|&&t| has_stamp_near(&te, t, max_dt)).count();
+    let covered = eligible
+        .iter()
+        .filter(|&&t| has_stamp_near(&te, t, max_dt))
+        .count();
     covered as f64 / eligible.len() as f64
 }
 
@@ -242,7 +260,11 @@ pub fn coverage(eligible: &[f64], est: &[StampedPose], max_dt: f64) -> f64 {
 /// evaluated on (the denominator of coverage).
 pub fn eligible_stamps(frame_stamps: &[f64], gt: &[StampedPose], max_dt: f64) -> Vec<f64> {
     let tg: Vec<f64> = gt.iter().map(|p| p.t).collect();
-    frame_stamps.iter().copied().filter(|&t| has_stamp_near(&tg, t, max_dt)).collect()
+    frame_stamps
+        .iter()
+        .copied()
+        .filter(|&t| has_stamp_near(&tg, t, max_dt))
+        .collect()
 }
 
 #[cfg(test)]
@@ -262,7 +284,10 @@ mod tests {
     fn coverage_counts_stamps_with_a_pose() {
         let est: Vec<StampedPose> = [0.0, 0.1, 0.3]
             .iter()
-            .map(|&t| StampedPose { t, pose: Isometry3::identity() })
+            .map(|&t| StampedPose {
+                t,
+                pose: Isometry3::identity(),
+            })
             .collect();
         assert_eq!(coverage(&[0.0, 0.1, 0.2, 0.305], &est, 0.02), 0.75);
     }

@@ -2,7 +2,7 @@
 //! time. Rendered into memory with plotters and written atomically as PNG. The font is shipped
 //! (DejaVu Sans, see fonts/LICENSE-DejaVu.txt) so plots need nothing from the system.
 
-use super::{AteResult, Associated};
+use super::{Associated, AteResult};
 use crate::error::{Error, Result};
 use crate::io::{atomic_write, tum::StampedPose};
 use nalgebra::{Matrix3, Vector3};
@@ -59,7 +59,11 @@ fn equal_aspect(
         let c = 0.5 * (r.start + r.end);
         (c - 0.5 * len)..(c + 0.5 * len)
     };
-    if w / h < aspect { (grow(x, h * aspect), y) } else { (x, grow(y, w / aspect)) }
+    if w / h < aspect {
+        (grow(x, h * aspect), y)
+    } else {
+        (x, grow(y, w / aspect))
+    }
 }
 
 /// Draws the evaluation plot. `gt` is the full ground truth (drawn as the reference path).
@@ -85,8 +89,11 @@ pub fn plot_ate(
         let (mean, a1, a2) = principal_axes(&gtp);
         let proj = |p: &Vector3<f64>| ((p - mean).dot(&a1), (p - mean).dot(&a2));
         let gt2: Vec<(f64, f64)> = gtp.iter().map(proj).collect();
-        let est2: Vec<(f64, f64)> =
-            assoc.estimate.iter().map(|p| proj(&p.translation.vector)).collect();
+        let est2: Vec<(f64, f64)> = assoc
+            .estimate
+            .iter()
+            .map(|p| proj(&p.translation.vector))
+            .collect();
         let all = gt2.iter().chain(&est2);
         let (xr, yr) = equal_aspect(
             padded_range(all.clone().map(|p| p.0)),
@@ -94,7 +101,10 @@ pub fn plot_ate(
             (W / 2 - 75) as f64 / (H - 110) as f64,
         );
         let mut c = ChartBuilder::on(&left)
-            .caption("top view (principal plane of the ground truth)", ("sans-serif", 16))
+            .caption(
+                "top view (principal plane of the ground truth)",
+                ("sans-serif", 16),
+            )
             .margin(10)
             .x_label_area_size(40)
             .y_label_area_size(55)
@@ -145,7 +155,10 @@ pub fn plot_ate(
         c.draw_series(LineSeries::new(errs, RED.stroke_width(2)))
             .map_err(|e| draw_err(&e))?;
         c.draw_series(std::iter::once(PathElement::new(
-            vec![(c.x_range().start, ate.stats.rmse), (c.x_range().end, ate.stats.rmse)],
+            vec![
+                (c.x_range().start, ate.stats.rmse),
+                (c.x_range().end, ate.stats.rmse),
+            ],
             BLACK.stroke_width(1),
         )))
         .map_err(|e| draw_err(&e))?;

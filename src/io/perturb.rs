@@ -44,9 +44,9 @@ impl Mark {
                 .map(Mark::Seconds)
                 .ok_or_else(|| format!("'{s}' is not a non-negative number of seconds"));
         }
-        s.parse::<usize>()
-            .map(Mark::Frame)
-            .map_err(|_| format!("'{s}' is neither a frame index nor seconds (e.g. 120, 4.0 or 4s)"))
+        s.parse::<usize>().map(Mark::Frame).map_err(|_| {
+            format!("'{s}' is neither a frame index nor seconds (e.g. 120, 4.0 or 4s)")
+        })
     }
 }
 
@@ -91,7 +91,9 @@ impl FaultKind {
             "noise" => Ok(Self::Noise),
             "frozen" => Ok(Self::Frozen),
             "foreign" => Ok(Self::Foreign),
-            o => Err(format!("unknown fault kind '{o}' (black, noise, frozen, foreign)")),
+            o => Err(format!(
+                "unknown fault kind '{o}' (black, noise, frozen, foreign)"
+            )),
         }
     }
 }
@@ -118,9 +120,9 @@ pub struct FaultSpec {
 impl std::str::FromStr for FaultSpec {
     type Err = String;
     fn from_str(s: &str) -> std::result::Result<Self, String> {
-        let (k, list) = s
-            .split_once('@')
-            .ok_or_else(|| format!("--fault '{s}': expected KIND@FRAMES, e.g. black@100,200-205"))?;
+        let (k, list) = s.split_once('@').ok_or_else(|| {
+            format!("--fault '{s}': expected KIND@FRAMES, e.g. black@100,200-205")
+        })?;
         let kind = FaultKind::parse(k)?;
         let mut frames = Vec::new();
         for part in list.split(',').filter(|p| !p.trim().is_empty()) {
@@ -266,7 +268,11 @@ impl PerturbationPlan {
                     "--fault foreign at frame {i}: the sequence has no frame 2 s away from it"
                 )));
             }
-            faults.push(AppliedFault { frame: i, kind, source });
+            faults.push(AppliedFault {
+                frame: i,
+                kind,
+                source,
+            });
         }
         Ok(Self {
             spec: spec.clone(),
@@ -352,7 +358,9 @@ impl<'a> PerturbedSequence<'a> {
             }
             FaultKind::Noise => {
                 // Seeded per frame so the noise does not depend on what came before.
-                let mut rng = ChaCha8Rng::seed_from_u64(self.plan.spec.seed ^ (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
+                let mut rng = ChaCha8Rng::seed_from_u64(
+                    self.plan.spec.seed ^ (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+                );
                 noise_rgb(&mut frame.rgb, &mut rng);
                 if let Some(d) = &mut frame.depth {
                     noise_depth(d, &mut rng);
@@ -420,27 +428,40 @@ mod tests {
 
     #[test]
     fn empty_or_reversed_drop_is_an_error() {
-        let spec = PerturbationSpec { drops: vec!["50:40".parse().unwrap()], ..Default::default() };
+        let spec = PerturbationSpec {
+            drops: vec!["50:40".parse().unwrap()],
+            ..Default::default()
+        };
         assert!(PerturbationPlan::new(&spec, &stamps(100)).is_err());
     }
 
     #[test]
     fn fault_rates_are_deterministic_and_near_p() {
         let spec = PerturbationSpec {
-            fault_rates: vec!["black:0.05".parse().unwrap(), "foreign:0.01".parse().unwrap()],
+            fault_rates: vec![
+                "black:0.05".parse().unwrap(),
+                "foreign:0.01".parse().unwrap(),
+            ],
             seed: 7,
             ..Default::default()
         };
         let a = PerturbationPlan::new(&spec, &stamps(3000)).unwrap();
         let b = PerturbationPlan::new(&spec, &stamps(3000)).unwrap();
         assert_eq!(a, b);
-        let black = a.faults.iter().filter(|f| f.kind == FaultKind::Black).count();
+        let black = a
+            .faults
+            .iter()
+            .filter(|f| f.kind == FaultKind::Black)
+            .count();
         assert!((100..=200).contains(&black), "{black}");
         for f in a.faults.iter().filter(|f| f.kind == FaultKind::Foreign) {
             let src = f.source.unwrap();
             assert!((src as f64 - f.frame as f64).abs() >= 60.0);
         }
         let other = PerturbationSpec { seed: 8, ..spec };
-        assert_ne!(PerturbationPlan::new(&other, &stamps(3000)).unwrap().faults, a.faults);
+        assert_ne!(
+            PerturbationPlan::new(&other, &stamps(3000)).unwrap().faults,
+            a.faults
+        );
     }
 }

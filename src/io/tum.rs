@@ -43,7 +43,11 @@ fn parse_f64(path: &Path, line: usize, what: &str, s: &str) -> Result<f64> {
         .parse()
         .map_err(|_| Error::parse(path, line, format!("{what} '{s}' is not a number")))?;
     if !v.is_finite() {
-        return Err(Error::parse(path, line, format!("{what} is {s}, not a finite number")));
+        return Err(Error::parse(
+            path,
+            line,
+            format!("{what} is {s}, not a finite number"),
+        ));
     }
     Ok(v)
 }
@@ -53,7 +57,11 @@ fn parse_f64(path: &Path, line: usize, what: &str, s: &str) -> Result<f64> {
 fn check_increasing(path: &Path, prev: Option<(f64, usize)>, t: f64, line: usize) -> Result<()> {
     if let Some((tp, lp)) = prev {
         if t <= tp {
-            let what = if t == tp { "duplicated" } else { "not increasing" };
+            let what = if t == tp {
+                "duplicated"
+            } else {
+                "not increasing"
+            };
             return Err(Error::parse(
                 path,
                 line,
@@ -82,7 +90,11 @@ pub fn parse_list(text: &str, path: &Path) -> Result<Vec<ListEntry>> {
         }
         let t = parse_f64(path, line, "time stamp", f[0])?;
         check_increasing(path, out.last().map(|e| (e.t, e.line)), t, line)?;
-        out.push(ListEntry { t, file: f[1].to_string(), line });
+        out.push(ListEntry {
+            t,
+            file: f[1].to_string(),
+            line,
+        });
     }
     Ok(out)
 }
@@ -197,7 +209,11 @@ pub fn associate_nearest(a: &[f64], b: &[f64], max_dt: f64) -> Vec<(usize, usize
             j = long.len() - 1;
         }
         let ub = long[j] - t;
-        let lb = if j > 0 { t - long[j - 1] } else { f64::INFINITY };
+        let lb = if j > 0 {
+            t - long[j - 1]
+        } else {
+            f64::INFINITY
+        };
         let best = if ub <= max_dt && ub < lb {
             j
         } else if lb <= max_dt && lb <= ub {
@@ -254,7 +270,11 @@ pub struct DepthImage {
 
 impl DepthImage {
     pub fn new(width: u32, height: u32) -> Self {
-        Self { width, height, data: vec![0.0; (width * height) as usize] }
+        Self {
+            width,
+            height,
+            data: vec![0.0; (width * height) as usize],
+        }
     }
     pub fn get(&self, x: u32, y: u32) -> f32 {
         self.data[(y * self.width + x) as usize]
@@ -338,7 +358,11 @@ impl TumSequence {
             let rgb = read_list(&rgb_list)?;
             if mono {
                 rgb.iter()
-                    .map(|e| FrameRef { t: e.t, rgb: dir.join(&e.file), depth: None })
+                    .map(|e| FrameRef {
+                        t: e.t,
+                        rgb: dir.join(&e.file),
+                        depth: None,
+                    })
                     .collect()
             } else {
                 let depth_list = dir.join("depth.txt");
@@ -371,13 +395,24 @@ impl TumSequence {
                  association tolerance)",
             ));
         }
-        Ok(Self { dir: dir.to_path_buf(), frames, width, height, depth_scale, unassociated })
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            frames,
+            width,
+            height,
+            depth_scale,
+            unassociated,
+        })
     }
 
     /// The ground truth of the folder, if it has `groundtruth.txt`.
     pub fn groundtruth(&self) -> Result<Option<Vec<StampedPose>>> {
         let p = self.dir.join("groundtruth.txt");
-        if p.is_file() { read_trajectory(&p).map(Some) } else { Ok(None) }
+        if p.is_file() {
+            read_trajectory(&p).map(Some)
+        } else {
+            Ok(None)
+        }
     }
 }
 
@@ -395,7 +430,12 @@ impl FrameSource for TumSequence {
             Some(p) => Some(load_depth(p, self.width, self.height, self.depth_scale)?),
             None => None,
         };
-        Ok(Frame { index: i, t: f.t, rgb, depth })
+        Ok(Frame {
+            index: i,
+            t: f.t,
+            rgb,
+            depth,
+        })
     }
 }
 
@@ -433,9 +473,12 @@ fn open_image(path: &Path) -> Result<DynamicImage> {
         .map_err(|e| Error::file(path, format!("cannot open image: {e}")))?
         .with_guessed_format()
         .map_err(|e| Error::file(path, format!("cannot read image: {e}")))?;
-    reader
-        .decode()
-        .map_err(|e| Error::file(path, format!("cannot decode image (truncated or corrupt?): {e}")))
+    reader.decode().map_err(|e| {
+        Error::file(
+            path,
+            format!("cannot decode image (truncated or corrupt?): {e}"),
+        )
+    })
 }
 
 fn check_size(path: &Path, w: u32, h: u32, width: u32, height: u32) -> Result<()> {
@@ -454,12 +497,15 @@ pub fn load_rgb(path: &Path, width: u32, height: u32) -> Result<RgbImage> {
     check_size(path, img.width(), img.height(), width, height)?;
     match img {
         DynamicImage::ImageRgb8(i) => Ok(i),
-        DynamicImage::ImageRgba8(_) | DynamicImage::ImageLuma8(_) | DynamicImage::ImageLumaA8(_) => {
-            Ok(img.to_rgb8())
-        }
+        DynamicImage::ImageRgba8(_)
+        | DynamicImage::ImageLuma8(_)
+        | DynamicImage::ImageLumaA8(_) => Ok(img.to_rgb8()),
         other => Err(Error::file(
             path,
-            format!("colour image has pixel type {:?}; expected 8-bit RGB or grey", other.color()),
+            format!(
+                "colour image has pixel type {:?}; expected 8-bit RGB or grey",
+                other.color()
+            ),
         )),
     }
 }
@@ -484,8 +530,16 @@ pub fn load_depth(path: &Path, width: u32, height: u32, scale: f64) -> Result<De
         }
     };
     let inv = 1.0 / scale;
-    let data = raw.as_raw().iter().map(|&d| (d as f64 * inv) as f32).collect();
-    Ok(DepthImage { width, height, data })
+    let data = raw
+        .as_raw()
+        .iter()
+        .map(|&d| (d as f64 * inv) as f32)
+        .collect();
+    Ok(DepthImage {
+        width,
+        height,
+        data,
+    })
 }
 
 /// Encodes depth in metres as a 16-bit PNG with `scale` units per metre (0 = invalid;
@@ -496,11 +550,16 @@ pub fn save_depth(path: &Path, depth: &DepthImage, scale: f64) -> Result<()> {
         .iter()
         .map(|&m| {
             let v = (m as f64 * scale).round();
-            if m > 0.0 && v >= 1.0 && v <= u16::MAX as f64 { v as u16 } else { 0 }
+            if m > 0.0 && v >= 1.0 && v <= u16::MAX as f64 {
+                v as u16
+            } else {
+                0
+            }
         })
         .collect();
-    let img = image::ImageBuffer::<image::Luma<u16>, _>::from_raw(depth.width, depth.height, raw)
-        .ok_or_else(|| Error::file(path, "depth buffer size does not match its dimensions"))?;
+    let img =
+        image::ImageBuffer::<image::Luma<u16>, _>::from_raw(depth.width, depth.height, raw)
+            .ok_or_else(|| Error::file(path, "depth buffer size does not match its dimensions"))?;
     save_png(path, &DynamicImage::ImageLuma16(img))
 }
 
@@ -521,7 +580,10 @@ mod tests {
         let a = [0.0, 0.1, 0.2, 0.3];
         let b = [0.005, 0.095, 0.15, 0.31, 0.5, 0.6];
         // a is shorter: each a takes its nearest b within 0.02 s.
-        assert_eq!(associate_nearest(&a, &b, 0.02), vec![(0, 0), (1, 1), (3, 3)]);
+        assert_eq!(
+            associate_nearest(&a, &b, 0.02),
+            vec![(0, 0), (1, 1), (3, 3)]
+        );
         // Tie goes to the earlier stamp.
         assert_eq!(associate_nearest(&[1.0], &[0.99, 1.01], 0.02), vec![(0, 0)]);
         assert!(associate_nearest(&[1.0], &[], 0.02).is_empty());

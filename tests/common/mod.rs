@@ -1,7 +1,9 @@
 //! Helpers shared by the integration tests: tiny TUM folders written on the spot.
 #![allow(dead_code)]
 
-use homing::io::tum::{DepthImage, StampedPose, save_depth, save_png, write_list, write_trajectory};
+use homing::io::tum::{
+    DepthImage, StampedPose, save_depth, save_png, write_list, write_trajectory,
+};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 use std::path::{Path, PathBuf};
 
@@ -28,7 +30,9 @@ pub fn tum_folder(root: &Path, name: &str, n: usize) -> PathBuf {
     let (mut rgb, mut depth) = (Vec::new(), Vec::new());
     for i in 0..n {
         let t = 1000.0 + i as f64 / 30.0;
-        let img = image::RgbImage::from_fn(W, H, |x, y| image::Rgb([(x * 4) as u8, (y * 5) as u8, i as u8]));
+        let img = image::RgbImage::from_fn(W, H, |x, y| {
+            image::Rgb([(x * 4) as u8, (y * 5) as u8, i as u8])
+        });
         let f = format!("rgb/{t:.6}.png");
         save_png(&dir.join(&f), &image::DynamicImage::ImageRgb8(img)).unwrap();
         rgb.push((t, f));
@@ -76,5 +80,8 @@ pub fn assert_clear_error(ok: bool, stderr: &str, needle: &str) {
     assert!(!ok, "expected failure, stderr: {stderr}");
     assert!(!stderr.contains("panicked"), "panicked: {stderr}");
     assert!(stderr.contains("error:"), "no error line: {stderr}");
-    assert!(stderr.contains(needle), "error does not name '{needle}': {stderr}");
+    assert!(
+        stderr.contains(needle),
+        "error does not name '{needle}': {stderr}"
+    );
 }
