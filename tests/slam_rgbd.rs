@@ -50,3 +50,46 @@ fn desk_small_tracks_every_frame() {
     );
     assert!(rows.last().unwrap().contains(",Final,Mapping,end_of_data,"));
 }
+
+#[test]
+fn two_runs_are_byte_identical() {
+    let tmp = tempfile::tempdir().unwrap();
+    let sc = scenarios::build("desk", 3).unwrap();
+    let opts = GenOptions {
+        out: tmp.path().join("desk"),
+        small: true,
+        seed: 3,
+        sensor: SensorOptions::realistic(),
+        max_frames: Some(60),
+    };
+    generate(&sc, &opts).unwrap();
+    let mut outputs = Vec::new();
+    for k in 0..2 {
+        let out = tmp.path().join(format!("run{k}"));
+        let s = run(&RunOptions {
+            sequence: tmp.path().join("desk"),
+            out: out.clone(),
+            ..Default::default()
+        })
+        .unwrap();
+        assert!(
+            s.frames_with_pose > 50 && s.keyframes >= 2,
+            "{} poses, {} keyframes",
+            s.frames_with_pose,
+            s.keyframes
+        );
+        outputs.push(
+            [
+                "trajectory.txt",
+                "keyframes.txt",
+                "states.csv",
+                "closures.csv",
+            ]
+            .map(|f| std::fs::read(out.join(f)).unwrap()),
+        );
+    }
+    assert!(
+        outputs[0] == outputs[1],
+        "two runs on the same input differ"
+    );
+}
