@@ -132,6 +132,19 @@ impl FeatureGrid {
     }
 }
 
+/// A detected key point before distribution.
+#[derive(Debug, Clone, Copy)]
+struct Candidate {
+    x: f32,
+    y: f32,
+    size: f32,
+    angle: f32,
+    response: f32,
+    octave: i32,
+    /// Found only with the low FAST threshold.
+    weak: bool,
+}
+
 /// ORB extraction + undistortion + depth lookup.
 pub struct Preprocessor {
     orb_ini: Ptr<ORB>,
@@ -142,6 +155,8 @@ pub struct Preprocessor {
     dist: Mat,
     /// Scale of each pyramid level relative to level 0.
     pub scales: Vec<f64>,
+    /// Frames on which the low-threshold pass ran (reported in the run summary's log).
+    pub weak_passes: usize,
 }
 
 fn cv_err(what: &str) -> impl Fn(opencv::Error) -> Error + '_ {
@@ -153,7 +168,7 @@ impl Preprocessor {
         let make = |fast: u32| {
             ORB::create(
                 // Generous budget: the grid distribution below picks the final set.
-                (cfg.n_features * 20) as i32,
+                (cfg.n_features * 6) as i32,
                 cfg.scale_factor as f32,
                 cfg.n_levels as i32,
                 19,
@@ -186,6 +201,7 @@ impl Preprocessor {
             k,
             dist,
             scales,
+            weak_passes: 0,
         })
     }
 
@@ -200,16 +216,22 @@ impl Preprocessor {
 
     pub fn process(&mut self, frame: &Frame) -> Result<Measurement> {
         let img = Self::gray(frame)?;
-        let mut strong = Vector::<KeyPoint>::new();
-        self.orb_ini
-            .detect(&img, &mut strong, &cv::no_array())
-            .map_err(cv_err("ORB detect"))?;
-        let mut weak = Vector::<KeyPoint>::new();
-        self.orb_min
-            .detect(&img, &mut weak, &cv::no_array())
-            .map_err(cv_err("ORB detect"))?;
-        let mut kps =
-            Vector::<KeyPoint>::from_iter(self.distribute(strong.to_vec(), weak.to_vec()));
+        let strong = self.detect(&img, false)?;
+        let mut chosen = self.distribute(&strong, &[]);
+        // The low FAST threshold is for poorly textured images: run it (it costs as much as
+        // the first pass) only when the first cannot fill the budget or leaves many cells empty.
+        if chosen.len() < self.cfg.n_features as usize || self.empty_cell_share(&strong) > 0.25 {
+            let weak = self.detect(&img, true)?;
+            chosen = self.distribute(&strong, &weak);
+            self.weak_passes += 1;
+        }
+        let mut kps = Vector::<KeyPoint>::with_capacity(chosen.len());
+        for c in &chosen {
+            kps.push(
+                KeyPoint::new_coords(c.x, c.y, c.size, c.angle, c.response, c.octave, -1)
+                    .map_err(cv_err("KeyPoint"))?,
+            );
+        }
         let mut desc = Mat::default();
         self.orb_ini
             .compute(&img, &mut kps, &mut desc)
@@ -259,14 +281,39 @@ impl Preprocessor {
         })
     }
 
+    /// ORB detection, copied out of OpenCV once into plain structs (OpenCV key points are
+    /// boxed FFI objects here; copying thousands of them costs more than detecting them).
+    fn detect(&mut self, img: &Mat, weak: bool) -> Result<Vec<Candidate>> {
+        let mut kps = Vector::<KeyPoint>::new();
+        let orb = if weak {
+            &mut self.orb_min
+        } else {
+            &mut self.orb_ini
+        };
+        orb.detect(img, &mut kps, &cv::no_array())
+            .map_err(cv_err("ORB detect"))?;
+        Ok(kps
+            .iter()
+            .map(|k| Candidate {
+                x: k.pt().x,
+                y: k.pt().y,
+                size: k.size(),
+                angle: k.angle(),
+                response: k.response(),
+                octave: k.octave(),
+                weak,
+            })
+            .collect())
+    }
+
     /// Per level: cells of ~32 px (at that level); round-robin over cells by response until the
     /// level's share of `n_features` (geometric in the scale, as ORB-SLAM) is reached. Weak
     /// (low FAST threshold) keypoints are only used in cells with no strong one.
-    fn distribute(&self, strong: Vec<KeyPoint>, weak: Vec<KeyPoint>) -> Vec<KeyPoint> {
+    fn distribute(&self, strong: &[Candidate], weak: &[Candidate]) -> Vec<Candidate> {
         let n_levels = self.cfg.n_levels as usize;
         let f = 1.0 / self.cfg.scale_factor;
         let first = self.cfg.n_features as f64 * (1.0 - f) / (1.0 - f.powi(n_levels as i32));
-        let mut out = Vec::with_capacity(self.cfg.n_features as usize);
+        let mut out: Vec<Candidate> = Vec::with_capacity(self.cfg.n_features as usize);
         for level in 0..n_levels {
             let target = if level + 1 == n_levels {
                 (self.cfg.n_features as usize).saturating_sub(out.len())
@@ -276,26 +323,24 @@ impl Preprocessor {
             let cell = 32.0 * self.scales[level];
             let cols = (self.camera.width as f64 / cell).ceil().max(1.0) as usize;
             let rows = (self.camera.height as f64 / cell).ceil().max(1.0) as usize;
-            let cell_of = |k: &KeyPoint| {
-                let c = ((k.pt().x as f64 / cell) as usize).min(cols - 1);
-                let r = ((k.pt().y as f64 / cell) as usize).min(rows - 1);
+            let cell_of = |k: &Candidate| {
+                let c = ((k.x as f64 / cell) as usize).min(cols - 1);
+                let r = ((k.y as f64 / cell) as usize).min(rows - 1);
                 r * cols + c
             };
-            let mut cells: Vec<Vec<KeyPoint>> = vec![Vec::new(); cols * rows];
-            for k in strong.iter().filter(|k| k.octave() as usize == level) {
-                cells[cell_of(k)].push(k.clone());
+            let mut cells: Vec<Vec<Candidate>> = vec![Vec::new(); cols * rows];
+            for k in strong.iter().filter(|k| k.octave as usize == level) {
+                cells[cell_of(k)].push(*k);
             }
-            for k in weak.iter().filter(|k| k.octave() as usize == level) {
+            for k in weak.iter().filter(|k| k.octave as usize == level) {
                 let c = cell_of(k);
-                if cells[c].first().is_none_or(|s| s.response() < 0.0) {
-                    // Mark weak entries with negative response so strong ones stay preferred.
-                    let mut w = k.clone();
-                    w.set_response(-k.response().abs() - f32::MIN_POSITIVE);
-                    cells[c].push(w);
+                // Weak key points only where the initial threshold found nothing.
+                if cells[c].first().is_none_or(|s| s.weak) {
+                    cells[c].push(*k);
                 }
             }
             for c in cells.iter_mut() {
-                c.sort_by(|a, b| b.response().abs().total_cmp(&a.response().abs()));
+                c.sort_by(|a, b| b.response.total_cmp(&a.response));
             }
             let mut taken = 0;
             let mut round = 0;
@@ -305,9 +350,7 @@ impl Preprocessor {
                     if let Some(k) = c.get(round) {
                         any = true;
                         if taken < target {
-                            let mut k = k.clone();
-                            k.set_response(k.response().abs());
-                            out.push(k);
+                            out.push(*k);
                             taken += 1;
                         }
                     }
@@ -320,11 +363,24 @@ impl Preprocessor {
         }
         // Deterministic order: by level, then position.
         out.sort_by(|a, b| {
-            (a.octave(), a.pt().y, a.pt().x)
-                .partial_cmp(&(b.octave(), b.pt().y, b.pt().x))
+            (a.octave, a.y, a.x)
+                .partial_cmp(&(b.octave, b.y, b.x))
                 .unwrap_or(std::cmp::Ordering::Equal)
         });
         out
+    }
+
+    /// Share of 32-px level-0 cells without a keypoint.
+    fn empty_cell_share(&self, kps: &[Candidate]) -> f64 {
+        let cols = (self.camera.width as usize).div_ceil(32);
+        let rows = (self.camera.height as usize).div_ceil(32);
+        let mut hit = vec![false; cols * rows];
+        for k in kps.iter().filter(|k| k.octave == 0) {
+            let c = ((k.x / 32.0) as usize).min(cols - 1);
+            let r = ((k.y / 32.0) as usize).min(rows - 1);
+            hit[r * cols + c] = true;
+        }
+        hit.iter().filter(|&&h| !h).count() as f64 / hit.len() as f64
     }
 
     fn undistort(&self, kps: &[KeyPoint]) -> Result<Vec<Vector2<f64>>> {

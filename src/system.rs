@@ -139,6 +139,10 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
             );
         }
     }
+    tracing::info!(
+        "low-threshold ORB pass ran on {} of {delivered} frames",
+        pre.weak_passes
+    );
     // End of data (or a fatal input error): Interruptible → Final.
     let trigger = if failure.is_some() {
         "input_error"
