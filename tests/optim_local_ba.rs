@@ -12,13 +12,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 
-const INTR: Intrinsics = Intrinsics {
-    fx: 517.3,
-    fy: 516.5,
-    cx: 318.6,
-    cy: 255.3,
-    bf: 40.0,
-};
+const INTR: Intrinsics = Intrinsics::TUM_FREIBURG1;
 
 /// World-to-camera pose of a camera at `centre` looking at `target` (y down, z forward).
 fn look_at(centre: Vector3<f64>, target: Vector3<f64>) -> Isometry3<f64> {

@@ -8,13 +8,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 
-const INTR: Intrinsics = Intrinsics {
-    fx: 517.3,
-    fy: 516.5,
-    cx: 318.6,
-    cy: 255.3,
-    bf: 40.0,
-};
+const INTR: Intrinsics = Intrinsics::TUM_FREIBURG1;
 
 fn pose_error(a: &Isometry3<f64>, b: &Isometry3<f64>) -> (f64, f64) {
     // Compare camera centres (metres) and orientations (degrees).

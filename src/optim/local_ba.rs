@@ -771,13 +771,7 @@ mod tests {
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
-    const INTR: Intrinsics = Intrinsics {
-        fx: 517.3,
-        fy: 516.5,
-        cx: 318.6,
-        cy: 255.3,
-        bf: 40.0,
-    };
+    const INTR: Intrinsics = Intrinsics::TUM_FREIBURG1;
 
     /// Small perturbed scene: 5 cameras (camera 0 fixed), 30 points (two fixed), every
     /// camera sees every point, observations alternate mono / RGB-D.

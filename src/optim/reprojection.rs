@@ -39,6 +39,16 @@ pub struct Intrinsics {
 }
 
 impl Intrinsics {
+    /// The TUM freiburg1 Kinect with ORB-SLAM's virtual baseline (bf = 40): a realistic
+    /// camera for tests and examples.
+    pub const TUM_FREIBURG1: Intrinsics = Intrinsics {
+        fx: 517.3,
+        fy: 516.5,
+        cx: 318.6,
+        cy: 255.3,
+        bf: 40.0,
+    };
+
     /// Pixel projection of a camera-frame point, `None` if it is not in front of the camera.
     pub fn project(&self, p_c: &Vector3<f64>) -> Option<Vector2<f64>> {
         if p_c.z.is_nan() || p_c.z <= MIN_DEPTH {
@@ -205,13 +215,7 @@ mod tests {
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
-    const INTR: Intrinsics = Intrinsics {
-        fx: 517.3,
-        fy: 516.5,
-        cx: 318.6,
-        cy: 255.3,
-        bf: 40.0,
-    };
+    const INTR: Intrinsics = Intrinsics::TUM_FREIBURG1;
 
     fn random_setup(rng: &mut ChaCha8Rng) -> (Isometry3<f64>, Vector3<f64>) {
         let d = Vector6::from_fn(|_, _| rng.random_range(-1.0..1.0));
