@@ -85,8 +85,10 @@ impl Default for OrbConfig {
 pub struct TrackerConfig {
     /// Inliers after pose refinement below which `able_to_track` is false.
     pub min_inliers: u32,
-    /// Projection search radius in pixels at level 0.
+    /// Projection search radius in pixels at level 0 (motion-model search).
     pub search_radius_px: f64,
+    /// Search radius at level 0 when refining against the local map (the pose is good by then).
+    pub local_map_radius_px: f64,
     /// Maximum Hamming distance of an accepted descriptor match.
     pub max_descriptor_distance: u32,
     /// Lowe ratio between best and second-best match.
@@ -100,6 +102,7 @@ impl Default for TrackerConfig {
         Self {
             min_inliers: 30,
             search_radius_px: 15.0,
+            local_map_radius_px: 3.0,
             max_descriptor_distance: 64,
             match_ratio: 0.9,
             huber_px: 2.45,
@@ -338,6 +341,12 @@ impl Config {
         let t = &self.tracker;
         c.range("tracker.min_inliers", t.min_inliers as f64, 3.0, 10000.0);
         c.range("tracker.search_radius_px", t.search_radius_px, 1.0, 1000.0);
+        c.range(
+            "tracker.local_map_radius_px",
+            t.local_map_radius_px,
+            0.5,
+            1000.0,
+        );
         c.range(
             "tracker.max_descriptor_distance",
             t.max_descriptor_distance as f64,

@@ -269,7 +269,14 @@ impl Tracker {
             .iter()
             .filter_map(|p| map.points.get(p).map(candidate))
             .collect();
-        self.search_by_projection(m, &pose, &cands, 3.0, &mut matches, true);
+        self.search_by_projection(
+            m,
+            &pose,
+            &cands,
+            self.cfg.local_map_radius_px,
+            &mut matches,
+            true,
+        );
         self.refine(m, map, &pose, matches)
     }
 
