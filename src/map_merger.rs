@@ -6,21 +6,16 @@ use crate::aligner::backproject;
 use crate::config::MappingConfig;
 use crate::map::{KfId, Map, PointId};
 use crate::optim::{
-    self, BaCamera, BaObservation, BaParams, BaPoint, BaProblem, Intrinsics, Observation,
-    octave_information,
+    self, BaCamera, BaObservation, BaParams, BaPoint, BaProblem, Observation, octave_information,
 };
-use crate::preprocess::{Measurement, hamming};
+use crate::preprocess::{ImageGeometry, Measurement, hamming};
 use crate::tracker::TrackResult;
 use nalgebra::Point3;
 use std::collections::{BTreeMap, BTreeSet};
 
 pub struct MapMerger {
     cfg: MappingConfig,
-    intr: Intrinsics,
-    width: f64,
-    height: f64,
-    scale_factor: f64,
-    n_levels: u32,
+    geo: ImageGeometry,
     last_kf_frame: Option<usize>,
     /// Points created recently, checked by culling: (point, keyframe that created it).
     recent: Vec<(PointId, KfId)>,
@@ -39,21 +34,10 @@ pub struct MergeReport {
 }
 
 impl MapMerger {
-    pub fn new(
-        cfg: &MappingConfig,
-        intr: Intrinsics,
-        width: u32,
-        height: u32,
-        scale_factor: f64,
-        n_levels: u32,
-    ) -> Self {
+    pub fn new(cfg: &MappingConfig, geo: ImageGeometry) -> Self {
         Self {
             cfg: cfg.clone(),
-            intr,
-            width: width as f64,
-            height: height as f64,
-            scale_factor,
-            n_levels,
+            geo,
             last_kf_frame: None,
             recent: Vec::new(),
         }
@@ -131,8 +115,8 @@ impl MapMerger {
                 continue;
             }
             let pw =
-                (pose_wc * Point3::from(backproject(&self.intr, &m.keypoints[i].un, d))).coords;
-            let id = map.add_point(kf, i, pw, self.scale_factor, self.n_levels);
+                (pose_wc * Point3::from(backproject(&self.geo.intr, &m.keypoints[i].un, d))).coords;
+            let id = map.add_point(kf, i, pw, self.geo.scale_factor, self.geo.n_levels);
             self.recent.push((id, kf));
             report.new_points += 1;
         }
@@ -143,7 +127,7 @@ impl MapMerger {
             .copied()
             .collect::<Vec<_>>()
         {
-            map.update_point(pid, self.scale_factor, self.n_levels);
+            map.update_point(pid, self.geo.scale_factor, self.geo.n_levels);
         }
         map.update_covisibility(kf);
         report.culled = self.cull(map, kf);
@@ -197,20 +181,14 @@ impl MapMerger {
                 continue;
             }
             let pc = pose * Point3::from(p.position);
-            let Some(uv) = self.intr.project(&pc.coords) else {
+            let Some(uv) = self.geo.project_in_image(&pc.coords) else {
                 continue;
             };
-            if uv.x < 0.0 || uv.y < 0.0 || uv.x >= self.width || uv.y >= self.height {
-                continue;
-            }
             let dist = (p.position - center).norm();
             if dist < 0.8 * p.min_distance || dist > 1.2 * p.max_distance {
                 continue;
             }
-            let level = ((p.max_distance / dist).ln() / self.scale_factor.ln())
-                .ceil()
-                .clamp(0.0, self.n_levels as f64 - 1.0);
-            let r = 3.0 * self.scale_factor.powf(level);
+            let r = 3.0 * self.geo.scales[self.geo.predicted_level(p.max_distance, dist)];
             let k = &map.keyframes[&kf];
             let mut best = (u32::MAX, usize::MAX);
             for i in k.grid.in_area(&k.keypoints, uv.x, uv.y, r, 0, 255) {
@@ -292,7 +270,7 @@ impl MapMerger {
                 })
                 .collect(),
             observations: Vec::new(),
-            intrinsics: self.intr,
+            intrinsics: self.geo.intr,
         };
         let mut obs_ref: Vec<(PointId, KfId)> = Vec::new();
         for (pi, pid) in pts.iter().enumerate() {
@@ -354,7 +332,7 @@ impl MapMerger {
             }
         }
         for p in &pts {
-            map.update_point(*p, self.scale_factor, self.n_levels);
+            map.update_point(*p, self.geo.scale_factor, self.geo.n_levels);
         }
     }
 }

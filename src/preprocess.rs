@@ -132,6 +132,52 @@ impl FeatureGrid {
     }
 }
 
+/// What projection searches need to know of the camera: intrinsics, image size and the ORB
+/// pyramid. Shared by the tracker and the map merger.
+#[derive(Debug, Clone)]
+pub struct ImageGeometry {
+    pub intr: crate::optim::Intrinsics,
+    pub width: f64,
+    pub height: f64,
+    pub scale_factor: f64,
+    pub n_levels: u32,
+    /// Scale of each pyramid level relative to level 0.
+    pub scales: Vec<f64>,
+}
+
+impl ImageGeometry {
+    pub fn new(
+        intr: crate::optim::Intrinsics,
+        width: u32,
+        height: u32,
+        scale_factor: f64,
+        n_levels: u32,
+    ) -> Self {
+        Self {
+            intr,
+            width: width as f64,
+            height: height as f64,
+            scale_factor,
+            n_levels,
+            scales: (0..n_levels).map(|l| scale_factor.powi(l as i32)).collect(),
+        }
+    }
+
+    /// Pixel of a camera-frame point, if it is in front of the camera and inside the image.
+    pub fn project_in_image(&self, p_c: &nalgebra::Vector3<f64>) -> Option<Vector2<f64>> {
+        let uv = self.intr.project(p_c)?;
+        (uv.x >= 0.0 && uv.y >= 0.0 && uv.x < self.width && uv.y < self.height).then_some(uv)
+    }
+
+    /// Pyramid level at which a point with scale-invariance limit `max_distance` is expected
+    /// to be detected from `distance` (ORB-SLAM's PredictScale).
+    pub fn predicted_level(&self, max_distance: f64, distance: f64) -> usize {
+        ((max_distance / distance).ln() / self.scale_factor.ln())
+            .ceil()
+            .clamp(0.0, (self.n_levels - 1) as f64) as usize
+    }
+}
+
 /// A detected key point before distribution.
 #[derive(Debug, Clone, Copy)]
 struct Candidate {

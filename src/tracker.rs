@@ -9,10 +9,8 @@
 use crate::aligner::pnp_ransac;
 use crate::config::TrackerConfig;
 use crate::map::{KfId, Map, PointId};
-use crate::optim::{
-    Intrinsics, Observation, PoseObservation, PoseParams, octave_information, refine_pose,
-};
-use crate::preprocess::{Descriptor, Measurement, hamming};
+use crate::optim::{Observation, PoseObservation, PoseParams, octave_information, refine_pose};
+use crate::preprocess::{Descriptor, ImageGeometry, Measurement, hamming};
 use nalgebra::{Isometry3, Vector2, Vector3};
 
 /// How the pose of a frame was found.
@@ -39,10 +37,7 @@ pub struct TrackResult {
 
 pub struct Tracker {
     cfg: TrackerConfig,
-    intr: Intrinsics,
-    width: f64,
-    height: f64,
-    scales: Vec<f64>,
+    geo: ImageGeometry,
     last_pose: Option<Isometry3<f64>>,
     velocity: Option<Isometry3<f64>>,
     last_matches: Vec<(usize, PointId)>,
@@ -60,20 +55,10 @@ struct Candidate {
 }
 
 impl Tracker {
-    pub fn new(
-        cfg: &TrackerConfig,
-        intr: Intrinsics,
-        width: u32,
-        height: u32,
-        scale_factor: f64,
-        n_levels: u32,
-    ) -> Self {
+    pub fn new(cfg: &TrackerConfig, geo: ImageGeometry) -> Self {
         Self {
             cfg: cfg.clone(),
-            intr,
-            width: width as f64,
-            height: height as f64,
-            scales: (0..n_levels).map(|l| scale_factor.powi(l as i32)).collect(),
+            geo,
             last_pose: None,
             velocity: None,
             last_matches: Vec::new(),
@@ -236,7 +221,9 @@ impl Tracker {
                     (a, b, c)
                 },
             );
-        let pnp = pnp_ransac(&pts, &uv, &self.intr, 4.0, 15).ok().flatten()?;
+        let pnp = pnp_ransac(&pts, &uv, &self.geo.intr, 4.0, 15)
+            .ok()
+            .flatten()?;
         let mut inl_matches = vec![None; m.len()];
         for (k, &i) in idx.iter().enumerate() {
             if pnp.inliers[k] {
@@ -310,7 +297,7 @@ impl Tracker {
                 }
             })
             .collect();
-        let r = refine_pose(init, &obs, &self.intr, &PoseParams::default());
+        let r = refine_pose(init, &obs, &self.geo.intr, &PoseParams::default());
         let mut out = vec![None; m.len()];
         for (k, &i) in idx.iter().enumerate() {
             if r.inliers[k] {
@@ -337,19 +324,15 @@ impl Tracker {
         let already: std::collections::BTreeSet<PointId> =
             matches.iter().flatten().copied().collect();
         let mut n = 0;
-        let n_levels = self.scales.len() as i32;
-        let log_scale = self.scales.get(1).copied().unwrap_or(1.2).ln();
+        let n_levels = self.geo.n_levels as i32;
         for c in cands {
             if already.contains(&c.id) {
                 continue;
             }
             let pc = pose * nalgebra::Point3::from(c.position);
-            let Some(uv) = self.intr.project(&pc.coords) else {
+            let Some(uv) = self.geo.project_in_image(&pc.coords) else {
                 continue;
             };
-            if uv.x < 0.0 || uv.y < 0.0 || uv.x >= self.width || uv.y >= self.height {
-                continue;
-            }
             let po = c.position - center;
             let dist = po.norm();
             if dist < 0.8 * c.min_distance || dist > 1.2 * c.max_distance {
@@ -359,11 +342,9 @@ impl Tracker {
             if ratio && view_cos < 0.5 {
                 continue;
             }
-            let level = ((c.max_distance / dist).ln() / log_scale)
-                .ceil()
-                .clamp(0.0, (n_levels - 1) as f64) as i32;
+            let level = self.geo.predicted_level(c.max_distance, dist) as i32;
             let view = if view_cos > 0.998 { 1.0 } else { 1.5 };
-            let r = radius * view * self.scales[level as usize];
+            let r = radius * view * self.geo.scales[level as usize];
             let lo = (level - 1).max(0) as u8;
             let hi = (level + 1).min(n_levels - 1) as u8;
             let (mut b1, mut b2, mut bi) = (u32::MAX, u32::MAX, usize::MAX);

@@ -11,7 +11,7 @@ use crate::map::{KfId, Map};
 use crate::map_merger::MapMerger;
 use crate::optim::Intrinsics;
 use crate::output::{Flags, Timing, Transition};
-use crate::preprocess::Measurement;
+use crate::preprocess::{ImageGeometry, Measurement};
 use crate::tracker::Tracker;
 use nalgebra::Isometry3;
 
@@ -49,6 +49,7 @@ pub struct StateMachine {
 impl StateMachine {
     pub fn new(config: &Config, intr: Intrinsics, width: u32, height: u32) -> Self {
         let (sf, nl) = (config.orb.scale_factor, config.orb.n_levels);
+        let geo = ImageGeometry::new(intr, width, height, sf, nl);
         Self {
             state: State::Init,
             initializer: Initializer {
@@ -58,8 +59,8 @@ impl StateMachine {
                 scale_factor: sf,
                 n_levels: nl,
             },
-            tracker: Tracker::new(&config.tracker, intr, width, height, sf, nl),
-            merger: MapMerger::new(&config.mapping, intr, width, height, sf, nl),
+            tracker: Tracker::new(&config.tracker, geo.clone()),
+            merger: MapMerger::new(&config.mapping, geo),
             maps: Vec::new(),
             flags: Flags::default(),
         }

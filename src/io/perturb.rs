@@ -28,16 +28,10 @@ pub enum Mark {
 impl Mark {
     fn parse(s: &str) -> std::result::Result<Self, String> {
         let s = s.trim();
-        if let Some(sec) = s.strip_suffix('s') {
+        // An 's' suffix or a decimal point means seconds; a bare integer is a frame index.
+        let seconds = s.strip_suffix('s').or(s.contains('.').then_some(s));
+        if let Some(sec) = seconds {
             return sec
-                .parse::<f64>()
-                .ok()
-                .filter(|v| v.is_finite() && *v >= 0.0)
-                .map(Mark::Seconds)
-                .ok_or_else(|| format!("'{s}' is not a non-negative number of seconds"));
-        }
-        if s.contains('.') {
-            return s
                 .parse::<f64>()
                 .ok()
                 .filter(|v| v.is_finite() && *v >= 0.0)
