@@ -178,31 +178,50 @@ impl ImageGeometry {
     }
 }
 
-/// A detected key point before distribution.
+/// A detected key point before distribution, in level-0 pixels.
 #[derive(Debug, Clone, Copy)]
 struct Candidate {
     x: f32,
     y: f32,
-    size: f32,
-    angle: f32,
+    /// Position at its own pyramid level (for the orientation).
+    lx: f32,
+    ly: f32,
     response: f32,
     octave: i32,
     /// Found only with the low FAST threshold.
     weak: bool,
 }
 
+/// ORB's patch radius (31-pixel patch): the orientation and descriptor need this margin.
+const HALF_PATCH: i32 = 15;
+/// Key points are detected at least this far from a level's border (ORB-SLAM's EDGE_THRESHOLD),
+/// so that OpenCV's descriptor computation never drops one.
+const EDGE: i32 = 19;
+/// FAST needs 3 pixels around a corner; detection windows are grown by that much.
+const FAST_RADIUS: i32 = 3;
+/// Cell size of the low-threshold retry, in level pixels (ORB-SLAM's W = 30).
+const FAST_CELL: i32 = 30;
+
 /// ORB extraction + undistortion + depth lookup.
+///
+/// Detection follows ORB-SLAM rather than OpenCV's `ORB::detect`: one image pyramid, FAST with
+/// the initial threshold per level, the low threshold only inside cells where the initial one
+/// found nothing, orientation by intensity centroid. Only the descriptors come from OpenCV's
+/// ORB (its rotated BRIEF pattern). OpenCV's detector builds its own pyramid, scores every
+/// corner with Harris and would need a second full pass for the low threshold: about twice
+/// the time for the same key points.
 pub struct Preprocessor {
-    orb_ini: Ptr<ORB>,
-    orb_min: Ptr<ORB>,
+    orb: Ptr<ORB>,
     cfg: OrbConfig,
     camera: CameraConfig,
     k: Mat,
     dist: Mat,
     /// Scale of each pyramid level relative to level 0.
     pub scales: Vec<f64>,
-    /// Frames on which the low-threshold pass ran (reported in the run summary's log).
+    /// Frames on which the low-threshold FAST found key points (reported in the run log).
     pub weak_passes: usize,
+    /// Precomputed row extents of the circular orientation patch (OpenCV's `umax`).
+    umax: Vec<i32>,
 }
 
 fn cv_err(what: &str) -> impl Fn(opencv::Error) -> Error + '_ {
@@ -211,21 +230,19 @@ fn cv_err(what: &str) -> impl Fn(opencv::Error) -> Error + '_ {
 
 impl Preprocessor {
     pub fn new(camera: &CameraConfig, cfg: &OrbConfig) -> Result<Self> {
-        let make = |fast: u32| {
-            ORB::create(
-                // Generous budget: the grid distribution below picks the final set.
-                (cfg.n_features * 6) as i32,
-                cfg.scale_factor as f32,
-                cfg.n_levels as i32,
-                19,
-                0,
-                2,
-                ORB_ScoreType::HARRIS_SCORE,
-                31,
-                fast as i32,
-            )
-            .map_err(cv_err("ORB::create"))
-        };
+        // Used for descriptors only (key points are provided), so the budget does not matter.
+        let orb = ORB::create(
+            cfg.n_features as i32,
+            cfg.scale_factor as f32,
+            cfg.n_levels as i32,
+            EDGE,
+            0,
+            2,
+            ORB_ScoreType::HARRIS_SCORE,
+            2 * HALF_PATCH + 1,
+            cfg.ini_fast_threshold as i32,
+        )
+        .map_err(cv_err("ORB::create"))?;
         let k = Mat::from_slice_2d(&[
             [camera.fx, 0.0, camera.cx],
             [0.0, camera.fy, camera.cy],
@@ -240,14 +257,14 @@ impl Preprocessor {
             .map(|l| cfg.scale_factor.powi(l as i32))
             .collect();
         Ok(Self {
-            orb_ini: make(cfg.ini_fast_threshold)?,
-            orb_min: make(cfg.min_fast_threshold)?,
+            orb,
             cfg: cfg.clone(),
             camera: camera.clone(),
             k,
             dist,
             scales,
             weak_passes: 0,
+            umax: patch_umax(HALF_PATCH),
         })
     }
 
@@ -260,26 +277,63 @@ impl Preprocessor {
         m.try_clone().map_err(cv_err("gray image"))
     }
 
+    /// The image pyramid as OpenCV's ORB builds it (each level resized from the previous one,
+    /// sizes rounded), so that detection and OpenCV's descriptors see the same pixels.
+    fn pyramid(&self, img: &Mat) -> Result<Vec<Mat>> {
+        let mut levels: Vec<Mat> = vec![img.clone()];
+        for l in 1..self.cfg.n_levels as usize {
+            let s = self.scales[l];
+            let size = cv::Size::new(
+                (img.cols() as f64 / s).round() as i32,
+                (img.rows() as f64 / s).round() as i32,
+            );
+            let mut out = Mat::default();
+            opencv::imgproc::resize(
+                &levels[l - 1],
+                &mut out,
+                size,
+                0.0,
+                0.0,
+                opencv::imgproc::INTER_LINEAR_EXACT,
+            )
+            .map_err(cv_err("pyramid resize"))?;
+            levels.push(out);
+        }
+        Ok(levels)
+    }
+
     pub fn process(&mut self, frame: &Frame) -> Result<Measurement> {
         let img = Self::gray(frame)?;
-        let strong = self.detect(&img, false)?;
-        let mut chosen = self.distribute(&strong, &[]);
-        // The low FAST threshold is for poorly textured images: run it (it costs as much as
-        // the first pass) only when the first cannot fill the budget or leaves many cells empty.
-        if chosen.len() < self.cfg.n_features as usize || self.empty_cell_share(&strong) > 0.25 {
-            let weak = self.detect(&img, true)?;
-            chosen = self.distribute(&strong, &weak);
+        let pyramid = self.pyramid(&img)?;
+        let mut strong = Vec::new();
+        let mut weak = Vec::new();
+        for (level, limg) in pyramid.iter().enumerate() {
+            self.detect_level(limg, level, &mut strong, &mut weak)?;
+        }
+        if !weak.is_empty() {
             self.weak_passes += 1;
         }
+        let chosen = self.distribute(&strong, &weak);
         let mut kps = Vector::<KeyPoint>::with_capacity(chosen.len());
         for c in &chosen {
+            let level = c.octave as usize;
+            let limg = &pyramid[level];
+            let angle = ic_angle(limg, c.lx.round() as i32, c.ly.round() as i32, &self.umax)?;
             kps.push(
-                KeyPoint::new_coords(c.x, c.y, c.size, c.angle, c.response, c.octave, -1)
-                    .map_err(cv_err("KeyPoint"))?,
+                KeyPoint::new_coords(
+                    c.x,
+                    c.y,
+                    (2 * HALF_PATCH + 1) as f32 * self.scales[level] as f32,
+                    angle,
+                    c.response,
+                    c.octave,
+                    -1,
+                )
+                .map_err(cv_err("KeyPoint"))?,
             );
         }
         let mut desc = Mat::default();
-        self.orb_ini
+        self.orb
             .compute(&img, &mut kps, &mut desc)
             .map_err(cv_err("ORB compute"))?;
         let kps = kps.to_vec();
@@ -327,29 +381,81 @@ impl Preprocessor {
         })
     }
 
-    /// ORB detection, copied out of OpenCV once into plain structs (OpenCV key points are
-    /// boxed FFI objects here; copying thousands of them costs more than detecting them).
-    fn detect(&mut self, img: &Mat, weak: bool) -> Result<Vec<Candidate>> {
-        let mut kps = Vector::<KeyPoint>::new();
-        let orb = if weak {
-            &mut self.orb_min
-        } else {
-            &mut self.orb_ini
+    /// FAST at the initial threshold over the level's detection area; then, in every 30-px
+    /// cell where it found nothing, FAST again at the low threshold (ORB-SLAM's scheme: the
+    /// low threshold is for poorly textured places, not a second pass over the whole image).
+    fn detect_level(
+        &self,
+        limg: &Mat,
+        level: usize,
+        strong: &mut Vec<Candidate>,
+        weak: &mut Vec<Candidate>,
+    ) -> Result<()> {
+        let (w, h) = (limg.cols(), limg.rows());
+        let (x0, y0) = (EDGE - FAST_RADIUS, EDGE - FAST_RADIUS);
+        let (x1, y1) = (w - EDGE + FAST_RADIUS, h - EDGE + FAST_RADIUS);
+        if x1 - x0 <= 2 * FAST_RADIUS || y1 - y0 <= 2 * FAST_RADIUS {
+            return Ok(());
+        }
+        let scale = self.scales[level] as f32;
+        let push = |out: &mut Vec<Candidate>, kps: &Vector<KeyPoint>, ox: i32, oy: i32, weak| {
+            for k in kps.iter() {
+                let (lx, ly) = (k.pt().x + ox as f32, k.pt().y + oy as f32);
+                out.push(Candidate {
+                    x: lx * scale,
+                    y: ly * scale,
+                    lx,
+                    ly,
+                    response: k.response(),
+                    octave: level as i32,
+                    weak,
+                });
+            }
         };
-        orb.detect(img, &mut kps, &cv::no_array())
-            .map_err(cv_err("ORB detect"))?;
-        Ok(kps
-            .iter()
-            .map(|k| Candidate {
-                x: k.pt().x,
-                y: k.pt().y,
-                size: k.size(),
-                angle: k.angle(),
-                response: k.response(),
-                octave: k.octave(),
-                weak,
-            })
-            .collect())
+        let fast = |rect: cv::Rect, threshold: u32| -> Result<Vector<KeyPoint>> {
+            let roi = limg.roi(rect).map_err(cv_err("FAST window"))?;
+            let mut kps = Vector::<KeyPoint>::new();
+            opencv::features2d::fast(&roi, &mut kps, threshold as i32, true)
+                .map_err(cv_err("FAST"))?;
+            Ok(kps)
+        };
+        let first = strong.len();
+        let kps = fast(
+            cv::Rect::new(x0, y0, x1 - x0, y1 - y0),
+            self.cfg.ini_fast_threshold,
+        )?;
+        push(strong, &kps, x0, y0, false);
+        // Occupancy of the retry cells by the initial threshold.
+        let (iw, ih) = (x1 - x0 - 2 * FAST_RADIUS, y1 - y0 - 2 * FAST_RADIUS);
+        let cols = (iw as f64 / FAST_CELL as f64).ceil().max(1.0) as i32;
+        let rows = (ih as f64 / FAST_CELL as f64).ceil().max(1.0) as i32;
+        let (cw, ch) = (iw as f64 / cols as f64, ih as f64 / rows as f64);
+        let mut occupied = vec![false; (cols * rows) as usize];
+        for c in &strong[first..] {
+            let cx = (((c.lx - EDGE as f32) as f64 / cw) as i32).clamp(0, cols - 1);
+            let cy = (((c.ly - EDGE as f32) as f64 / ch) as i32).clamp(0, rows - 1);
+            occupied[(cy * cols + cx) as usize] = true;
+        }
+        for r in 0..rows {
+            for c in 0..cols {
+                if occupied[(r * cols + c) as usize] {
+                    continue;
+                }
+                let cx0 = EDGE + (c as f64 * cw) as i32 - FAST_RADIUS;
+                let cy0 = EDGE + (r as f64 * ch) as i32 - FAST_RADIUS;
+                let cx1 = (EDGE + ((c + 1) as f64 * cw) as i32 + FAST_RADIUS).min(x1);
+                let cy1 = (EDGE + ((r + 1) as f64 * ch) as i32 + FAST_RADIUS).min(y1);
+                if cx1 - cx0 <= 2 * FAST_RADIUS || cy1 - cy0 <= 2 * FAST_RADIUS {
+                    continue;
+                }
+                let kps = fast(
+                    cv::Rect::new(cx0, cy0, cx1 - cx0, cy1 - cy0),
+                    self.cfg.min_fast_threshold,
+                )?;
+                push(weak, &kps, cx0, cy0, true);
+            }
+        }
+        Ok(())
     }
 
     /// Per level: cells of ~32 px (at that level); round-robin over cells by response until the
@@ -416,19 +522,6 @@ impl Preprocessor {
         out
     }
 
-    /// Share of 32-px level-0 cells without a keypoint.
-    fn empty_cell_share(&self, kps: &[Candidate]) -> f64 {
-        let cols = (self.camera.width as usize).div_ceil(32);
-        let rows = (self.camera.height as usize).div_ceil(32);
-        let mut hit = vec![false; cols * rows];
-        for k in kps.iter().filter(|k| k.octave == 0) {
-            let c = ((k.x / 32.0) as usize).min(cols - 1);
-            let r = ((k.y / 32.0) as usize).min(rows - 1);
-            hit[r * cols + c] = true;
-        }
-        hit.iter().filter(|&&h| !h).count() as f64 / hit.len() as f64
-    }
-
     fn undistort(&self, kps: &[KeyPoint]) -> Result<Vec<Vector2<f64>>> {
         if !self.camera.has_distortion() || kps.is_empty() {
             return Ok(kps
@@ -452,4 +545,57 @@ impl Preprocessor {
             .map(|p| Vector2::new(p.x as f64, p.y as f64))
             .collect())
     }
+}
+
+/// Row half-widths of the circular patch used for the orientation (OpenCV's `umax`, which makes
+/// the circle symmetric so the angle does not depend on the raster direction).
+fn patch_umax(half: i32) -> Vec<i32> {
+    let mut umax = vec![0i32; half as usize + 2];
+    let vmax = (half as f64 * std::f64::consts::FRAC_1_SQRT_2 + 1.0).floor() as i32;
+    let vmin = (half as f64 * std::f64::consts::FRAC_1_SQRT_2).ceil() as i32;
+    let hp2 = (half * half) as f64;
+    for v in 0..=vmax {
+        umax[v as usize] = (hp2 - (v * v) as f64).sqrt().round() as i32;
+    }
+    // Make sure the circle is symmetric.
+    let mut v0 = 0;
+    let mut v = half;
+    while v >= vmin {
+        while umax[v0 as usize] == umax[(v0 + 1) as usize] {
+            v0 += 1;
+        }
+        umax[v as usize] = v0;
+        v0 += 1;
+        v -= 1;
+    }
+    umax
+}
+
+/// Orientation of a key point by the intensity centroid of its circular patch, in degrees
+/// [0, 360) as OpenCV's ORB reports it (its descriptor rotates the pattern by this angle).
+fn ic_angle(img: &Mat, x: i32, y: i32, umax: &[i32]) -> Result<f32> {
+    let half = umax.len() as i32 - 2;
+    let step = img
+        .mat_step()
+        .get(0)
+        .copied()
+        .unwrap_or(img.cols() as usize);
+    let data = img.data_bytes().map_err(cv_err("pyramid level"))?;
+    let at = |u: i32, v: i32| data[(y + v) as usize * step + (x + u) as usize] as i32;
+    let (mut m01, mut m10) = (0i32, 0i32);
+    for u in -half..=half {
+        m10 += u * at(u, 0);
+    }
+    for v in 1..=half {
+        let d = umax[v as usize];
+        let mut v_sum = 0;
+        for u in -d..=d {
+            let (plus, minus) = (at(u, v), at(u, -v));
+            v_sum += plus - minus;
+            m10 += u * (plus + minus);
+        }
+        m01 += v * v_sum;
+    }
+    let a = (m01 as f32).atan2(m10 as f32).to_degrees();
+    Ok(if a < 0.0 { a + 360.0 } else { a })
 }

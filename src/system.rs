@@ -140,7 +140,7 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
         }
     }
     tracing::info!(
-        "low-threshold ORB pass ran on {} of {delivered} frames",
+        "low-threshold FAST found key points on {} of {delivered} frames",
         pre.weak_passes
     );
     // End of data (or a fatal input error): Interruptible → Final.
