@@ -127,6 +127,9 @@ pub struct MappingConfig {
     pub local_ba_iterations: u32,
     /// Number of covisible keyframes optimised by local BA.
     pub local_ba_window: u32,
+    /// Iterations of each of the two passes of the full BA the Final state runs over every
+    /// map (0 = none).
+    pub final_ba_iterations: u32,
 }
 
 impl Default for MappingConfig {
@@ -138,6 +141,7 @@ impl Default for MappingConfig {
             keyframe_max_interval: 30,
             local_ba_iterations: 10,
             local_ba_window: 10,
+            final_ba_iterations: 10,
         }
     }
 }
@@ -385,6 +389,12 @@ impl Config {
             "mapping.local_ba_window",
             m.local_ba_window as f64,
             1.0,
+            1000.0,
+        );
+        c.range(
+            "mapping.final_ba_iterations",
+            m.final_ba_iterations as f64,
+            0.0,
             1000.0,
         );
         let l = &self.loop_closing;

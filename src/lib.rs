@@ -8,6 +8,7 @@ pub mod io;
 
 pub use error::{Error, Result};
 pub mod aligner;
+pub mod bench;
 pub mod control;
 pub mod eval;
 pub mod geometry;

@@ -37,6 +37,11 @@ enum Cmd {
     ///
     /// Example: homing eval --gt seq/groundtruth.txt --est out/trajectory.txt --plot ate.png
     Eval(EvalArgs),
+    /// Benchmarks that print numbers (per-stage ms/frame, fps, ATE).
+    ///
+    /// Example: homing bench tracking --sequence data/rgbd_dataset_freiburg1_xyz --out out/bench
+    #[command(subcommand)]
+    Bench(BenchCmd),
     /// Print the default configuration, or check a config file and print it resolved.
     ///
     /// Example: homing config --check my.toml
@@ -44,6 +49,23 @@ enum Cmd {
         /// A config file to validate.
         #[arg(long)]
         check: Option<PathBuf>,
+    },
+}
+
+#[derive(Subcommand)]
+enum BenchCmd {
+    /// Run a sequence deterministic and threaded; print per-stage ms/frame, throughput
+    /// against real time and ATE; write OUT/bench_tracking.md and both runs' outputs.
+    Tracking {
+        /// TUM RGB-D folder.
+        #[arg(long)]
+        sequence: PathBuf,
+        /// Config file (TOML).
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Output folder.
+        #[arg(long, default_value = "out/bench")]
+        out: PathBuf,
     },
 }
 
@@ -78,6 +100,10 @@ struct RunArgs {
     /// Evaluate against the sequence's groundtruth.txt and print the result.
     #[arg(long)]
     eval: bool,
+    /// Threaded mode: local BA on its own thread (faster; results vary slightly run to run).
+    /// Default: deterministic, byte-identical outputs for the same input.
+    #[arg(long)]
+    threaded: bool,
 }
 
 #[derive(Args)]
@@ -134,6 +160,13 @@ fn main() {
         Cmd::Run(a) => cmd_run(a),
         Cmd::Eval(a) => cmd_eval(a),
         Cmd::Config { check } => cmd_config(check),
+        Cmd::Bench(BenchCmd::Tracking {
+            sequence,
+            config,
+            out,
+        }) => homing::bench::tracking(&sequence, config.as_deref(), &out)
+            .map(|md| print!("{md}"))
+            .map_err(Into::into),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");
@@ -155,6 +188,7 @@ fn cmd_run(a: RunArgs) -> Result<()> {
         },
         eval: a.eval,
         command: std::env::args().collect(),
+        threaded: a.threaded,
     };
     let s = run(&opts)?;
     println!(

@@ -135,6 +135,21 @@ impl Map {
     }
 
     /// Adds an observation of an existing point.
+    /// ORB-SLAM's observation count: an observation with depth counts twice (it constrains the
+    /// point like a stereo pair), one without once.
+    pub fn observation_weight(&self, p: &MapPoint) -> usize {
+        p.observations
+            .iter()
+            .map(|(k, &i)| {
+                if self.keyframes.get(k).is_some_and(|k| k.depth[i] > 0.0) {
+                    2
+                } else {
+                    1
+                }
+            })
+            .sum()
+    }
+
     pub fn observe(&mut self, kf: KfId, kp: usize, point: PointId) {
         if let Some(p) = self.points.get_mut(&point) {
             p.observations.insert(kf, kp);

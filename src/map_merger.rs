@@ -19,6 +19,95 @@ pub struct MapMerger {
     last_kf_frame: Option<usize>,
     /// Points created recently, checked by culling: (point, keyframe that created it).
     recent: Vec<(PointId, KfId)>,
+    /// Threaded mode: local BA runs on this worker (ORB-SLAM's local-mapping thread) while
+    /// tracking goes on; `None` = deterministic mode, BA finishes before the next frame.
+    worker: Option<BaWorker>,
+    /// Solver times of jobs applied while waiting inside `insert_keyframe`, for `poll`.
+    waited_ms: Vec<f64>,
+}
+
+/// A bundle-adjustment problem cut out of a map, with what is needed to write it back.
+pub struct BaJob {
+    pub map: u32,
+    pub keyframe: KfId,
+    problem: BaProblem,
+    cams: Vec<KfId>,
+    pts: Vec<PointId>,
+    obs_ref: Vec<(PointId, KfId)>,
+    first: BaParams,
+    second: BaParams,
+}
+
+/// A solved job.
+pub struct BaDone {
+    job: BaJob,
+    report: Option<optim::BaReport>,
+    /// Solver time.
+    pub ms: f64,
+}
+
+impl BaJob {
+    fn solve(mut self) -> BaDone {
+        let t = std::time::Instant::now();
+        let report = match optim::local_ba::solve_with_outlier_rejection(
+            &mut self.problem,
+            &self.first,
+            &self.second,
+        ) {
+            Ok(r) => Some(r),
+            Err(e) => {
+                tracing::warn!("bundle adjustment failed ({e}); map left unchanged");
+                None
+            }
+        };
+        BaDone {
+            job: self,
+            report,
+            ms: t.elapsed().as_secs_f64() * 1e3,
+        }
+    }
+}
+
+/// The local-mapping thread: solves jobs in order; the tracking thread applies the results.
+struct BaWorker {
+    jobs: std::sync::mpsc::Sender<BaJob>,
+    done: std::sync::mpsc::Receiver<BaDone>,
+    pending: usize,
+    handle: Option<std::thread::JoinHandle<()>>,
+}
+
+impl BaWorker {
+    fn spawn() -> Self {
+        let (jobs, job_rx) = std::sync::mpsc::channel::<BaJob>();
+        let (done_tx, done) = std::sync::mpsc::channel();
+        let handle = std::thread::Builder::new()
+            .name("local-ba".into())
+            .spawn(move || {
+                for job in job_rx {
+                    if done_tx.send(job.solve()).is_err() {
+                        break;
+                    }
+                }
+            })
+            .expect("spawning the local BA thread");
+        Self {
+            jobs,
+            done,
+            pending: 0,
+            handle: Some(handle),
+        }
+    }
+}
+
+impl Drop for BaWorker {
+    fn drop(&mut self) {
+        // Closing the job channel ends the worker's loop.
+        let (tx, _) = std::sync::mpsc::channel();
+        drop(std::mem::replace(&mut self.jobs, tx));
+        if let Some(h) = self.handle.take() {
+            let _ = h.join();
+        }
+    }
 }
 
 /// What one keyframe insertion did (for logs and timing).
@@ -40,7 +129,39 @@ impl MapMerger {
             geo,
             last_kf_frame: None,
             recent: Vec::new(),
+            worker: None,
+            waited_ms: Vec::new(),
         }
+    }
+
+    /// Threaded mode: local BA on its own thread from now on.
+    pub fn set_threaded(&mut self) {
+        if self.worker.is_none() {
+            self.worker = Some(BaWorker::spawn());
+        }
+    }
+
+    /// Applies the local BA results that are ready (threaded mode; nothing otherwise). With
+    /// `wait`, blocks until every submitted job is back. Returns the solver times.
+    pub fn poll(&mut self, maps: &mut [Map], wait: bool) -> Vec<f64> {
+        let mut times = std::mem::take(&mut self.waited_ms);
+        let Some(w) = self.worker.as_mut() else {
+            return times;
+        };
+        while w.pending > 0 {
+            let done = if wait {
+                w.done.recv().ok()
+            } else {
+                w.done.try_recv().ok()
+            };
+            let Some(done) = done else { break };
+            w.pending -= 1;
+            times.push(done.ms);
+            if let Some(map) = maps.iter_mut().find(|m| m.id == done.job.map) {
+                apply_ba(map, &self.geo, &done);
+            }
+        }
+        times
     }
 
     /// A new map started at keyframe `kf` of frame `frame`.
@@ -49,8 +170,23 @@ impl MapMerger {
         self.recent.clear();
     }
 
+    /// Culling statistics of a tracked frame: its visible points were predicted in view, its
+    /// inlier matches were found.
+    pub fn note_tracked(&self, map: &mut Map, track: &TrackResult) {
+        for pid in &track.visible {
+            if let Some(p) = map.points.get_mut(pid) {
+                p.visible += 1;
+            }
+        }
+        for pid in track.matches.iter().flatten() {
+            if let Some(p) = map.points.get_mut(pid) {
+                p.found += 1;
+            }
+        }
+    }
+
     /// ORB-SLAM's RGB-D keyframe decision: insert when the frame tracks clearly fewer points than
-    /// its reference keyframe, or when few close points are tracked while many could be created,
+    /// its reference keyframe has well-observed points (observation weight as in culling), or when few close points are tracked while many could be created,
     /// or when too many frames passed. Always requires some tracked points (> 15).
     pub fn need_keyframe(&self, map: &Map, m: &Measurement, track: &TrackResult) -> bool {
         let Some(ref_kf) = track.reference_kf.and_then(|k| map.keyframes.get(&k)) else {
@@ -64,7 +200,7 @@ impl MapMerger {
             .filter(|p| {
                 map.points
                     .get(p)
-                    .is_some_and(|p| p.observations.len() >= min_obs)
+                    .is_some_and(|p| map.observation_weight(p) >= min_obs)
             })
             .count();
         let close = |i: usize| m.depth[i] > 0.0 && (m.depth[i] as f64) < self.cfg.max_point_depth_m;
@@ -138,8 +274,10 @@ impl MapMerger {
         report
     }
 
-    /// Removes recent points that too few keyframes confirmed (ORB-SLAM's culling, by
-    /// observation count: a point must be seen by 3 keyframes within 2 keyframes of its birth).
+    /// Removes recent points that the following keyframes do not confirm (ORB-SLAM's culling):
+    /// found in fewer than a quarter of the frames that should have seen them, or, two
+    /// keyframes after their birth, observed by fewer than two keyframes with depth (an
+    /// observation with depth counts twice, one without once, as ORB-SLAM's stereo count).
     fn cull(&mut self, map: &mut Map, current: KfId) -> usize {
         let mut culled = 0;
         let mut keep = Vec::new();
@@ -148,7 +286,9 @@ impl MapMerger {
                 continue;
             };
             let age = current.saturating_sub(born);
-            if age >= 2 && p.observations.len() < 3 {
+            let weight = map.observation_weight(p);
+            let found_ratio = p.found as f64 / p.visible.max(1) as f64;
+            if found_ratio < 0.25 || (age >= 2 && weight <= 3) {
                 map.remove_point(pid);
                 culled += 1;
             } else if age < 3 {
@@ -231,108 +371,214 @@ impl MapMerger {
         fused
     }
 
-    /// Local BA over the new keyframe and its covisible window; keyframes that also see those
-    /// points are fixed (and keyframe 0 always, for the gauge).
-    fn local_ba(&self, map: &mut Map, kf: KfId, report: &mut MergeReport) {
+    /// Local BA over the new keyframe and its covisible window (ORB-SLAM's schedule: a robust
+    /// pass, outliers set aside, a plain pass on the inliers).
+    fn local_ba(&mut self, map: &mut Map, kf: KfId, report: &mut MergeReport) {
         let mut local: Vec<KfId> = vec![kf];
         local.extend(map.keyframes[&kf].best_covisible(self.cfg.local_ba_window as usize - 1));
-        local.sort_unstable();
-        let local_set: BTreeSet<KfId> = local.iter().copied().collect();
-        let mut points: BTreeSet<PointId> = BTreeSet::new();
-        for k in &local {
-            points.extend(map.keyframes[k].points.iter().flatten().copied());
-        }
-        let mut fixed: BTreeSet<KfId> = BTreeSet::new();
-        for pid in &points {
-            for o in map.points[pid].observations.keys() {
-                if !local_set.contains(o) {
-                    fixed.insert(*o);
-                }
-            }
-        }
-        let cams: Vec<KfId> = local.iter().chain(fixed.iter()).copied().collect();
-        let cam_index: BTreeMap<KfId, usize> =
-            cams.iter().enumerate().map(|(i, &k)| (k, i)).collect();
-        let pts: Vec<PointId> = points.into_iter().collect();
-        let mut problem = BaProblem {
-            keyframes: cams
-                .iter()
-                .map(|k| BaCamera {
-                    pose_cw: map.keyframes[k].pose_cw,
-                    fixed: fixed.contains(k) || *k == 0,
-                })
-                .collect(),
-            points: pts
-                .iter()
-                .map(|p| BaPoint {
-                    position_w: map.points[p].position,
-                    fixed: false,
-                })
-                .collect(),
-            observations: Vec::new(),
-            intrinsics: self.geo.intr,
-        };
-        let mut obs_ref: Vec<(PointId, KfId)> = Vec::new();
-        for (pi, pid) in pts.iter().enumerate() {
-            for (k, &kp) in &map.points[pid].observations {
-                let Some(&ci) = cam_index.get(k) else {
-                    continue;
-                };
-                let key = &map.keyframes[k];
-                let d = key.depth[kp] as f64;
-                let uv = key.keypoints[kp].un;
-                problem.observations.push(BaObservation {
-                    camera: ci,
-                    point: pi,
-                    obs: if d > 0.0 {
-                        Observation::Rgbd { uv, depth: d }
-                    } else {
-                        Observation::Mono { uv }
-                    },
-                    info: octave_information(key.keypoints[kp].octave as u32),
-                });
-                obs_ref.push((*pid, *k));
-            }
-        }
-        if problem.keyframes.iter().all(|c| c.fixed) {
-            return;
-        }
-        let params = BaParams {
-            iterations: self.cfg.local_ba_iterations as usize,
+        let first = BaParams {
+            iterations: 5,
             ..Default::default()
         };
-        let Ok(r) = optim::local_ba::solve(&mut problem, &params) else {
-            tracing::warn!("local BA failed at keyframe {kf}; map left unchanged");
+        let second = BaParams {
+            iterations: self.cfg.local_ba_iterations as usize,
+            huber: false,
+            ..Default::default()
+        };
+        let Some(job) = prepare_ba(map, &self.geo, &local, kf, &first, &second) else {
             return;
         };
-        report.ba_initial_cost = r.initial_cost;
-        report.ba_final_cost = r.final_cost;
-        report.ba_outliers = r.outliers.len();
-        for (k, c) in cams.iter().zip(&problem.keyframes) {
-            if !c.fixed {
-                map.keyframes.get_mut(k).expect("exists").pose_cw = c.pose_cw;
-            }
-        }
-        for (p, bp) in pts.iter().zip(&problem.points) {
-            map.points.get_mut(p).expect("exists").position = bp.position_w;
-        }
-        // Drop outlier observations; points left with none disappear.
-        for &o in &r.outliers {
-            let (pid, k) = obs_ref[o];
-            let Some(p) = map.points.get_mut(&pid) else {
-                continue;
-            };
-            if let Some(kp) = p.observations.remove(&k) {
-                if let Some(key) = map.keyframes.get_mut(&k) {
-                    key.points[kp] = None;
+        match self.worker.as_mut() {
+            Some(w) => {
+                // One job at a time: a still-running BA is finished and applied first, so that
+                // the next one starts from its result (ORB-SLAM instead aborts it).
+                if w.pending > 0 {
+                    let times = self.poll(std::slice::from_mut(map), true);
+                    self.waited_ms.extend(times);
+                }
+                let w = self.worker.as_mut().expect("threaded");
+                if w.jobs.send(job).is_ok() {
+                    w.pending += 1;
                 }
             }
-            if p.observations.is_empty() {
-                map.points.remove(&pid);
+            None => {
+                let done = job.solve();
+                if let Some(r) = apply_ba(map, &self.geo, &done) {
+                    report.ba_initial_cost = r.initial_cost;
+                    report.ba_final_cost = r.final_cost;
+                    report.ba_outliers = r.outliers.len();
+                }
             }
         }
-        for p in &pts {
-            map.update_point(*p, self.geo.scale_factor, self.geo.n_levels);
+    }
+
+    /// Full BA over every keyframe of the map (the first one fixed for the gauge): the batch
+    /// refinement of the Final state.
+    pub fn global_ba(&self, map: &mut Map) -> Option<optim::BaReport> {
+        let iterations = self.cfg.final_ba_iterations as usize;
+        if iterations == 0 || map.keyframes.len() < 2 {
+            return None;
+        }
+        let all: Vec<KfId> = map.keyframes.keys().copied().collect();
+        let first = BaParams {
+            iterations,
+            ..Default::default()
+        };
+        let second = BaParams {
+            iterations,
+            huber: false,
+            ..Default::default()
+        };
+        bundle_adjust(map, &self.geo, &all, &first, &second)
+    }
+}
+
+/// Bundle adjustment of the keyframes `free` and every point they see, solved at once. Keyframes
+/// outside `free` that see those points are fixed constants, and so is the map's first keyframe
+/// (the gauge). Outlier observations are erased from the map; points left without any
+/// disappear.
+pub fn bundle_adjust(
+    map: &mut Map,
+    geo: &ImageGeometry,
+    free: &[KfId],
+    first: &BaParams,
+    second: &BaParams,
+) -> Option<optim::BaReport> {
+    let kf = free.iter().copied().max()?;
+    let done = prepare_ba(map, geo, free, kf, first, second)?.solve();
+    apply_ba(map, geo, &done).cloned()
+}
+
+/// Cuts the BA problem of [`bundle_adjust`] out of the map.
+pub fn prepare_ba(
+    map: &Map,
+    geo: &ImageGeometry,
+    free: &[KfId],
+    keyframe: KfId,
+    first: &BaParams,
+    second: &BaParams,
+) -> Option<BaJob> {
+    let mut local: Vec<KfId> = free.to_vec();
+    local.sort_unstable();
+    local.dedup();
+    let anchor = map.keyframes.keys().next().copied();
+    let local_set: BTreeSet<KfId> = local.iter().copied().collect();
+    let mut points: BTreeSet<PointId> = BTreeSet::new();
+    for k in &local {
+        points.extend(map.keyframes[k].points.iter().flatten().copied());
+    }
+    let mut fixed: BTreeSet<KfId> = BTreeSet::new();
+    for pid in &points {
+        for o in map.points[pid].observations.keys() {
+            if !local_set.contains(o) {
+                fixed.insert(*o);
+            }
         }
     }
+    let cams: Vec<KfId> = local.iter().chain(fixed.iter()).copied().collect();
+    let cam_index: BTreeMap<KfId, usize> = cams.iter().enumerate().map(|(i, &k)| (k, i)).collect();
+    let pts: Vec<PointId> = points.into_iter().collect();
+    let mut problem = BaProblem {
+        keyframes: cams
+            .iter()
+            .map(|k| BaCamera {
+                pose_cw: map.keyframes[k].pose_cw,
+                fixed: fixed.contains(k) || Some(*k) == anchor,
+            })
+            .collect(),
+        points: pts
+            .iter()
+            .map(|p| BaPoint {
+                position_w: map.points[p].position,
+                fixed: false,
+            })
+            .collect(),
+        observations: Vec::new(),
+        intrinsics: geo.intr,
+    };
+    let mut obs_ref: Vec<(PointId, KfId)> = Vec::new();
+    for (pi, pid) in pts.iter().enumerate() {
+        for (k, &kp) in &map.points[pid].observations {
+            let Some(&ci) = cam_index.get(k) else {
+                continue;
+            };
+            let key = &map.keyframes[k];
+            let d = key.depth[kp] as f64;
+            let uv = key.keypoints[kp].un;
+            problem.observations.push(BaObservation {
+                camera: ci,
+                point: pi,
+                obs: if d > 0.0 {
+                    Observation::Rgbd { uv, depth: d }
+                } else {
+                    Observation::Mono { uv }
+                },
+                info: octave_information(key.keypoints[kp].octave as u32),
+            });
+            obs_ref.push((*pid, *k));
+        }
+    }
+    if problem.keyframes.iter().all(|c| c.fixed) {
+        return None;
+    }
+    Some(BaJob {
+        map: map.id,
+        keyframe,
+        problem,
+        cams,
+        pts,
+        obs_ref,
+        first: *first,
+        second: *second,
+    })
+}
+
+/// Writes a solved job back. In threaded mode the map moved on while it was solved: keyframes
+/// and points that disappeared meanwhile are skipped, observations added meanwhile are kept.
+pub fn apply_ba<'a>(
+    map: &mut Map,
+    geo: &ImageGeometry,
+    done: &'a BaDone,
+) -> Option<&'a optim::BaReport> {
+    let r = done.report.as_ref()?;
+    let BaJob {
+        problem,
+        cams,
+        pts,
+        obs_ref,
+        ..
+    } = &done.job;
+    for (k, c) in cams.iter().zip(&problem.keyframes) {
+        if !c.fixed {
+            if let Some(kf) = map.keyframes.get_mut(k) {
+                kf.pose_cw = c.pose_cw;
+            }
+        }
+    }
+    for (p, bp) in pts.iter().zip(&problem.points) {
+        if let Some(p) = map.points.get_mut(p) {
+            p.position = bp.position_w;
+        }
+    }
+    // Drop outlier observations; points left with none disappear.
+    for &o in &r.outliers {
+        let (pid, k) = obs_ref[o];
+        let Some(p) = map.points.get_mut(&pid) else {
+            continue;
+        };
+        if let Some(kp) = p.observations.remove(&k) {
+            if let Some(key) = map.keyframes.get_mut(&k) {
+                key.points[kp] = None;
+            }
+        }
+        if p.observations.is_empty() {
+            map.points.remove(&pid);
+        }
+    }
+    for p in pts {
+        if map.points.contains_key(p) {
+            map.update_point(*p, geo.scale_factor, geo.n_levels);
+        }
+    }
+    Some(r)
 }

@@ -91,6 +91,16 @@ impl Timing {
         out
     }
 
+    /// Samples recorded so far under `stage`.
+    pub fn count(&self, stage: &str) -> usize {
+        self.samples.get(stage).map_or(0, Vec::len)
+    }
+
+    /// The latest sample of `stage`.
+    pub fn last(&self, stage: &str) -> Option<f64> {
+        self.samples.get(stage).and_then(|v| v.last().copied())
+    }
+
     pub fn summary(&self) -> BTreeMap<String, TimingStats> {
         self.samples
             .iter()
@@ -133,8 +143,12 @@ pub struct Summary {
     pub camera: CameraConfig,
     pub camera_source: String,
     pub config: Config,
+    /// "deterministic" (mapping finishes before the next frame) or "threaded".
+    pub mode: &'static str,
     pub timing: BTreeMap<String, TimingStats>,
     pub wall_time_s: f64,
+    /// Time span of the delivered frames' stamps: what "real time" means for this run.
+    pub data_duration_s: f64,
     /// Evaluation against the sequence's ground truth, when asked for (`--eval`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub evaluation: Option<serde_json::Value>,

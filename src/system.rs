@@ -34,6 +34,9 @@ pub struct RunOptions {
     pub eval: bool,
     /// The command line, recorded in summary.json.
     pub command: Vec<String>,
+    /// Threaded mode: local BA on its own thread while tracking goes on (faster, not
+    /// bit-reproducible). Default: deterministic, mapping finishes before the next frame.
+    pub threaded: bool,
 }
 
 /// Runs a whole sequence and writes the run outputs. On a bad frame the outputs gathered so far
@@ -76,6 +79,9 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
     };
     let mut pre = Preprocessor::new(&camera, &config.orb)?;
     let mut machine = StateMachine::new(&config, intr, camera.width, camera.height);
+    if opts.threaded {
+        machine.set_threaded();
+    }
     let mut timing = Timing::default();
     let mut states: Vec<StateRow> = Vec::new();
     // Frame poses are kept relative to their reference keyframe, so that the final trajectory
@@ -84,61 +90,83 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
     let closures: Vec<ClosureRow> = Vec::new();
     let mut failure = None;
     let n = perturbed.len();
-    let mut frames = perturbed.frames();
     let mut delivered = 0usize;
-    loop {
-        let t0 = Instant::now();
-        let Some(frame) = frames.next() else { break };
-        timing.record("load", t0.elapsed().as_secs_f64() * 1e3);
-        let frame = match frame {
-            Ok(f) => f,
-            Err(e) => {
-                failure = Some(e);
-                break;
+    // Images are decoded on a loader thread a few frames ahead (in both modes: it changes
+    // when a frame is read, never what is computed from it).
+    std::thread::scope(|scope| {
+        let (tx, rx) = std::sync::mpsc::sync_channel(4);
+        let perturbed = &perturbed;
+        scope.spawn(move || {
+            let mut frames = perturbed.frames();
+            loop {
+                let t0 = Instant::now();
+                let Some(frame) = frames.next() else { break };
+                let ms = t0.elapsed().as_secs_f64() * 1e3;
+                let stop = frame.is_err();
+                if tx.send((frame, ms)).is_err() || stop {
+                    break;
+                }
             }
-        };
-        delivered += 1;
-        let t_frame = Instant::now();
-        let m = match timing.time("preprocess", || pre.process(&frame)) {
-            Ok(m) => m,
-            Err(e) => {
-                failure = Some(e);
-                break;
-            }
-        };
-        let out = machine.step(&m, &mut timing);
-        timing.record("frame", t_frame.elapsed().as_secs_f64() * 1e3);
-        if let Some((pose_cw, map, kf)) = out.pose {
-            let kf_pose = machine.maps[map as usize].keyframes[&kf].pose_cw;
-            relative.push((frame.t, map, kf, pose_cw * kf_pose.inverse()));
-        }
-        let transition = match (states.is_empty(), out.transition) {
-            (_, Some(t)) => Some(t),
-            (true, None) => Some(Transition {
-                from: "(start)".into(),
-                trigger: "start".into(),
-            }),
-            (false, None) => None,
-        };
-        states.push(StateRow {
-            frame: frame.index,
-            t: frame.t,
-            state: out.state.clone(),
-            transition,
-            flags: out.flags,
         });
-        if delivered % 100 == 0 {
-            tracing::info!(
-                "frame {delivered}/{n} state {} keyframes {}",
-                out.state,
-                machine
-                    .maps
-                    .iter()
-                    .map(|m| m.keyframes.len())
-                    .sum::<usize>()
-            );
+        for (frame, load_ms) in rx {
+            timing.record("load", load_ms);
+            let frame = match frame {
+                Ok(f) => f,
+                Err(e) => {
+                    failure = Some(e);
+                    break;
+                }
+            };
+            delivered += 1;
+            let t_frame = Instant::now();
+            let m = match timing.time("preprocess", || pre.process(&frame)) {
+                Ok(m) => m,
+                Err(e) => {
+                    failure = Some(e);
+                    break;
+                }
+            };
+            let pre_ms = timing.last("preprocess").unwrap_or(0.0);
+            let tracked = timing.count("track");
+            let out = machine.step(&m, &mut timing);
+            timing.record("frame", t_frame.elapsed().as_secs_f64() * 1e3);
+            // The front end's budget: extraction + tracking of one frame (mapping excluded).
+            if timing.count("track") > tracked {
+                let track_ms = timing.last("track").unwrap_or(0.0);
+                timing.record("extract_track", pre_ms + track_ms);
+            }
+            if let Some((pose_cw, map, kf)) = out.pose {
+                let kf_pose = machine.maps[map as usize].keyframes[&kf].pose_cw;
+                relative.push((frame.t, map, kf, pose_cw * kf_pose.inverse()));
+            }
+            let transition = match (states.is_empty(), out.transition) {
+                (_, Some(t)) => Some(t),
+                (true, None) => Some(Transition {
+                    from: "(start)".into(),
+                    trigger: "start".into(),
+                }),
+                (false, None) => None,
+            };
+            states.push(StateRow {
+                frame: frame.index,
+                t: frame.t,
+                state: out.state.clone(),
+                transition,
+                flags: out.flags,
+            });
+            if delivered % 100 == 0 {
+                tracing::info!(
+                    "frame {delivered}/{n} state {} keyframes {}",
+                    out.state,
+                    machine
+                        .maps
+                        .iter()
+                        .map(|m| m.keyframes.len())
+                        .sum::<usize>()
+                );
+            }
         }
-    }
+    });
     tracing::info!(
         "low-threshold FAST found key points on {} of {delivered} frames",
         pre.weak_passes
@@ -149,7 +177,7 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
     } else {
         "end_of_data"
     };
-    let fin = machine.finish(trigger);
+    let fin = machine.finish(trigger, &mut timing);
     if let Some(last) = states.last() {
         let (frame, t) = (last.frame, last.t);
         states.push(StateRow {
@@ -212,7 +240,16 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
         camera_source: source.to_string(),
         config,
         timing: timing.summary(),
+        mode: if opts.threaded {
+            "threaded"
+        } else {
+            "deterministic"
+        },
         wall_time_s: wall.elapsed().as_secs_f64(),
+        data_duration_s: match (states.first(), states.last()) {
+            (Some(a), Some(b)) => b.t - a.t,
+            _ => 0.0,
+        },
         evaluation,
         error: failure.as_ref().map(|e| e.to_string()),
     };

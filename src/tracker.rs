@@ -33,6 +33,9 @@ pub struct TrackResult {
     pub method: TrackMethod,
     /// Keyframe sharing most points with this frame.
     pub reference_kf: Option<KfId>,
+    /// Local-map points predicted visible in this frame (for the map merger's culling
+    /// statistics: a point found in too few of the frames that should see it is culled).
+    pub visible: Vec<PointId>,
 }
 
 pub struct Tracker {
@@ -41,6 +44,8 @@ pub struct Tracker {
     last_pose: Option<Isometry3<f64>>,
     velocity: Option<Isometry3<f64>>,
     last_matches: Vec<(usize, PointId)>,
+    /// Orientation of each key point of the last tracked frame (rotation-consistency check).
+    last_angles: Vec<f32>,
     pub reference_kf: Option<KfId>,
 }
 
@@ -52,7 +57,12 @@ struct Candidate {
     normal: Vector3<f64>,
     min_distance: f64,
     max_distance: f64,
+    /// Orientation of the key point that matched it in the last frame, if known.
+    ref_angle: Option<f32>,
 }
+
+/// Bins of the rotation-consistency histogram (ORB-SLAM's HISTO_LENGTH).
+const ROTATION_BINS: usize = 30;
 
 impl Tracker {
     pub fn new(cfg: &TrackerConfig, geo: ImageGeometry) -> Self {
@@ -62,6 +72,7 @@ impl Tracker {
             last_pose: None,
             velocity: None,
             last_matches: Vec::new(),
+            last_angles: Vec::new(),
             reference_kf: None,
         }
     }
@@ -80,6 +91,7 @@ impl Tracker {
             .enumerate()
             .filter_map(|(i, m)| m.map(|p| (i, p)))
             .collect();
+        self.last_angles.clear();
         self.reference_kf = Some(reference_kf);
     }
 
@@ -100,7 +112,7 @@ impl Tracker {
         let Some((pose, matches, method)) = attempt else {
             return self.lost(m);
         };
-        let (pose, matches, n_inliers) = self.with_local_map(m, map, pose, matches);
+        let (pose, matches, n_inliers, visible) = self.with_local_map(m, map, pose, matches);
         let able = n_inliers >= self.cfg.min_inliers as usize;
         if !able {
             return self.lost(m);
@@ -114,6 +126,7 @@ impl Tracker {
             self.velocity = Some(v);
         }
         self.last_pose = Some(pose);
+        self.last_angles = m.keypoints.iter().map(|k| k.angle).collect();
         self.last_matches = matches
             .iter()
             .enumerate()
@@ -129,6 +142,7 @@ impl Tracker {
             able_to_track: true,
             method,
             reference_kf: self.reference_kf,
+            visible,
         }
     }
 
@@ -141,6 +155,7 @@ impl Tracker {
             able_to_track: false,
             method: TrackMethod::Lost,
             reference_kf: self.reference_kf,
+            visible: Vec::new(),
         }
     }
 
@@ -153,11 +168,20 @@ impl Tracker {
         let cands: Vec<Candidate> = self
             .last_matches
             .iter()
-            .filter_map(|&(_, pid)| map.points.get(&pid).map(candidate))
+            .filter_map(|&(i, pid)| {
+                map.points.get(&pid).map(|p| Candidate {
+                    ref_angle: self.last_angles.get(i).copied(),
+                    ..candidate(p)
+                })
+            })
             .collect();
         for radius in [self.cfg.search_radius_px, 2.0 * self.cfg.search_radius_px] {
             let mut matches = vec![None; m.len()];
-            let n = self.search_by_projection(m, &predicted, &cands, radius, &mut matches, false);
+            let n = self.search_by_projection(m, &predicted, &cands, radius, &mut matches, None);
+            tracing::trace!(
+                "motion model: {} candidates, {n} matches at radius {radius}",
+                cands.len()
+            );
             if n < 20 {
                 continue;
             }
@@ -234,14 +258,15 @@ impl Tracker {
         (inl >= 15).then_some((pose, refined, TrackMethod::Pnp))
     }
 
-    /// Adds matches from the local map, then refines once more.
+    /// Adds matches from the local map, then refines once more. Also returns the local-map
+    /// points predicted visible.
     fn with_local_map(
         &self,
         m: &Measurement,
         map: &Map,
         pose: Isometry3<f64>,
         mut matches: Vec<Option<PointId>>,
-    ) -> (Isometry3<f64>, Vec<Option<PointId>>, usize) {
+    ) -> (Isometry3<f64>, Vec<Option<PointId>>, usize, Vec<PointId>) {
         let seen: std::collections::BTreeSet<PointId> = matches.iter().flatten().copied().collect();
         let local_kfs = map.local_keyframes(seen.iter().copied(), 20);
         let mut cand_ids = std::collections::BTreeSet::new();
@@ -256,15 +281,25 @@ impl Tracker {
             .iter()
             .filter_map(|p| map.points.get(p).map(candidate))
             .collect();
-        self.search_by_projection(
+        let before = matches.iter().flatten().count();
+        let mut visible: Vec<PointId> = seen.iter().copied().collect();
+        let added = self.search_by_projection(
             m,
             &pose,
             &cands,
             self.cfg.local_map_radius_px,
             &mut matches,
-            true,
+            Some(&mut visible),
         );
-        self.refine(m, map, &pose, matches)
+        visible.sort_unstable();
+        let r = self.refine(m, map, &pose, matches);
+        tracing::trace!(
+            "local map: {} keyframes, {} candidates, {before} matched before, {added} added, {} inliers",
+            local_kfs.len(),
+            cands.len(),
+            r.2
+        );
+        (r.0, r.1, r.2, visible)
     }
 
     /// Pose-only refinement; returns the pose, the inlier matches and their count.
@@ -309,7 +344,8 @@ impl Tracker {
 
     /// Projects candidates with `pose` and matches them to unmatched keypoints near their
     /// projection (radius scaled by the predicted pyramid level). Returns the number of new
-    /// matches. `ratio` enables Lowe's ratio test (used for the larger local-map search).
+    /// matches. The local-map search (`visible` given) adds Lowe's ratio test and the viewing
+    /// angle limit, and collects the candidates predicted visible.
     fn search_by_projection(
         &self,
         m: &Measurement,
@@ -317,10 +353,12 @@ impl Tracker {
         cands: &[Candidate],
         radius: f64,
         matches: &mut [Option<PointId>],
-        ratio: bool,
+        mut visible: Option<&mut Vec<PointId>>,
     ) -> usize {
+        let ratio = visible.is_some();
         let center = pose.inverse().translation.vector;
         let mut best = vec![u32::MAX; m.len()];
+        let mut rotation_bin: Vec<Option<usize>> = vec![None; m.len()];
         let already: std::collections::BTreeSet<PointId> =
             matches.iter().flatten().copied().collect();
         let mut n = 0;
@@ -341,6 +379,9 @@ impl Tracker {
             let view_cos = po.dot(&c.normal) / dist;
             if ratio && view_cos < 0.5 {
                 continue;
+            }
+            if let Some(v) = visible.as_mut() {
+                v.push(c.id);
             }
             let level = self.geo.predicted_level(c.max_distance, dist) as i32;
             let view = if view_cos > 0.998 { 1.0 } else { 1.5 };
@@ -371,6 +412,32 @@ impl Tracker {
                 }
                 best[bi] = b1;
                 matches[bi] = Some(c.id);
+                rotation_bin[bi] = c.ref_angle.map(|a| {
+                    let d = (a - m.keypoints[bi].angle).rem_euclid(360.0);
+                    ((d / 360.0 * ROTATION_BINS as f32) as usize).min(ROTATION_BINS - 1)
+                });
+            }
+        }
+        // Rotation consistency (ORB-SLAM): between two frames every true match turns by about
+        // the same angle; matches outside the three dominant bins of the histogram are dropped.
+        let mut hist = [0usize; ROTATION_BINS];
+        for b in rotation_bin.iter().flatten() {
+            hist[*b] += 1;
+        }
+        let mut order: Vec<usize> = (0..ROTATION_BINS).collect();
+        order.sort_by(|a, b| hist[*b].cmp(&hist[*a]).then(a.cmp(b)));
+        let max = hist[order[0]];
+        let keep: Vec<usize> = order[..3]
+            .iter()
+            .copied()
+            .filter(|&b| hist[b] > 0 && hist[b] as f64 >= 0.1 * max as f64)
+            .collect();
+        for (i, b) in rotation_bin.iter().enumerate() {
+            if let Some(b) = b {
+                if !keep.contains(b) {
+                    matches[i] = None;
+                    n -= 1;
+                }
             }
         }
         n
@@ -385,6 +452,7 @@ fn candidate(p: &crate::map::MapPoint) -> Candidate {
         normal: p.normal,
         min_distance: p.min_distance,
         max_distance: p.max_distance,
+        ref_angle: None,
     }
 }
 

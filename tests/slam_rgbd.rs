@@ -92,4 +92,24 @@ fn two_runs_are_byte_identical() {
         outputs[0] == outputs[1],
         "two runs on the same input differ"
     );
+    // Threaded mode (local BA on its own thread) runs the same code: same frames tracked,
+    // close to the deterministic trajectory, but not required to be bit-identical.
+    let s = run(&RunOptions {
+        sequence: tmp.path().join("desk"),
+        out: tmp.path().join("threaded"),
+        eval: true,
+        threaded: true,
+        ..Default::default()
+    })
+    .unwrap();
+    assert_eq!(s.mode, "threaded");
+    assert_eq!(s.frames_with_pose, s.frames, "threaded mode lost a frame");
+    assert!(
+        s.timing.contains_key("local_ba_thread"),
+        "BA never ran on the thread"
+    );
+    let ate = s.evaluation.unwrap()["ate"]["stats"]["rmse"]
+        .as_f64()
+        .unwrap();
+    assert!(ate < 0.03, "threaded ATE {ate} m");
 }

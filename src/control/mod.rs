@@ -66,6 +66,18 @@ impl StateMachine {
         }
     }
 
+    /// Threaded mode: local BA runs on its own thread (see `MapMerger::set_threaded`).
+    pub fn set_threaded(&mut self) {
+        self.merger.set_threaded();
+    }
+
+    /// Local BA results from the mapping thread that are ready (threaded mode only).
+    fn collect_mapping(&mut self, wait: bool, timing: &mut Timing) {
+        for ms in self.merger.poll(&mut self.maps, wait) {
+            timing.record("local_ba_thread", ms);
+        }
+    }
+
     pub fn state_name(&self) -> String {
         match self.state {
             State::Init => "Init".into(),
@@ -107,16 +119,25 @@ impl StateMachine {
                 }
             }
             State::Idle | State::Core => {
+                self.collect_mapping(false, timing);
                 let map_id = self.maps.len() - 1;
                 let map = &self.maps[map_id];
                 let track = timing.time("track", || self.tracker.track(m, map));
                 self.flags.able_to_track = track.able_to_track;
+                tracing::debug!(
+                    "frame {}: {:?}, {} inliers of {} key points",
+                    m.frame,
+                    track.method,
+                    track.n_inliers,
+                    m.len()
+                );
                 if track.able_to_track {
                     if self.state == State::Idle {
                         transition = self.go(State::Core, "able_to_track");
                     }
                     let map = &mut self.maps[map_id];
                     // Mapping region: the map merger grows the local map.
+                    self.merger.note_tracked(map, &track);
                     if self.merger.need_keyframe(map, m, &track) {
                         let r = timing.time("map", || self.merger.insert_keyframe(map, m, &track));
                         tracing::debug!(
@@ -151,8 +172,22 @@ impl StateMachine {
     }
 
     /// Interruptible → Final (end of data or user stop).
-    pub fn finish(&mut self, trigger: &str) -> StepOutput {
+    pub fn finish(&mut self, trigger: &str, timing: &mut Timing) -> StepOutput {
         let transition = self.go(State::Final, trigger);
+        self.collect_mapping(true, timing);
+        // Final, entry: batch refinement of every map.
+        for map in &mut self.maps {
+            if let Some(r) = timing.time("final_ba", || self.merger.global_ba(map)) {
+                tracing::info!(
+                    "final BA of map {}: {} keyframes, cost {:.1} -> {:.1}, {} outlier observations",
+                    map.id,
+                    map.keyframes.len(),
+                    r.initial_cost,
+                    r.final_cost,
+                    r.outliers.len()
+                );
+            }
+        }
         StepOutput {
             state: self.state_name(),
             transition,

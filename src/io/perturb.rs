@@ -296,12 +296,12 @@ fn foreign_source(stamps: &[f64], i: usize, rng: &mut ChaCha8Rng) -> Option<usiz
 /// A sequence seen through a perturbation plan: only delivered frames, faults substituted,
 /// depth removed in mono mode. Frame indices stay those of the unperturbed sequence.
 pub struct PerturbedSequence<'a> {
-    inner: &'a dyn FrameSource,
+    inner: &'a (dyn FrameSource + Sync),
     pub plan: PerturbationPlan,
 }
 
 impl<'a> PerturbedSequence<'a> {
-    pub fn new(inner: &'a dyn FrameSource, spec: &PerturbationSpec) -> Result<Self> {
+    pub fn new(inner: &'a (dyn FrameSource + Sync), spec: &PerturbationSpec) -> Result<Self> {
         let stamps: Vec<f64> = (0..inner.len()).map(|i| inner.timestamp(i)).collect();
         let plan = PerturbationPlan::new(spec, &stamps)?;
         Ok(Self { inner, plan })

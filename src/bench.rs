@@ -1,0 +1,87 @@
+//! Benchmarks that print numbers (never assert on them): `homing bench tracking` runs a
+//! sequence in both modes and reports per-stage milliseconds per frame, throughput against
+//! real time and the trajectory error.
+
+use crate::error::Result;
+use crate::output::Summary;
+use crate::system::{RunOptions, run};
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+/// The stages reported, in pipeline order, with what they cover.
+const STAGES: &[(&str, &str)] = &[
+    ("load", "PNG decoding (loader thread)"),
+    ("preprocess", "ORB extraction, undistortion, depth"),
+    ("track", "tracker"),
+    ("extract_track", "preprocess + track per frame"),
+    ("map", "keyframe insertion (+ local BA when deterministic)"),
+    ("local_ba_thread", "local BA on the mapping thread"),
+    ("final_ba", "full BA in Final"),
+    ("frame", "whole step on the tracking thread"),
+];
+
+/// Runs `sequence` deterministic and threaded, writes OUT/{deterministic,threaded}/ and
+/// returns a Markdown report.
+pub fn tracking(sequence: &Path, config: Option<&Path>, out: &Path) -> Result<String> {
+    let mut runs: Vec<(&str, Summary)> = Vec::new();
+    for (mode, threaded) in [("deterministic", false), ("threaded", true)] {
+        let opts = RunOptions {
+            sequence: sequence.to_path_buf(),
+            out: out.join(mode),
+            config: config.map(PathBuf::from),
+            eval: true,
+            command: std::env::args().collect(),
+            threaded,
+            ..Default::default()
+        };
+        tracing::info!("bench: {mode} run of {}", sequence.display());
+        runs.push((mode, run(&opts)?));
+    }
+    let mut md = String::new();
+    let _ = writeln!(md, "# homing bench tracking: {}\n", sequence.display());
+    let _ = writeln!(
+        md,
+        "Per-stage time per call, median / p90 (ms); cores: {}.\n",
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    );
+    let _ = writeln!(
+        md,
+        "| stage | what | {} |",
+        runs.iter().map(|(m, _)| *m).collect::<Vec<_>>().join(" | ")
+    );
+    let _ = writeln!(md, "|---|---|{}", "---|".repeat(runs.len()));
+    for (stage, what) in STAGES {
+        let cells: Vec<String> = runs
+            .iter()
+            .map(|(_, s)| {
+                s.timing.get(*stage).map_or("–".into(), |t| {
+                    format!("{:.1} / {:.1} (n={})", t.median_ms, t.p90_ms, t.count)
+                })
+            })
+            .collect();
+        let _ = writeln!(md, "| {stage} | {what} | {} |", cells.join(" | "));
+    }
+    let _ = writeln!(md);
+    let _ = writeln!(
+        md,
+        "| mode | frames | wall s | data s | fps | × real time | keyframes | ATE RMSE cm |"
+    );
+    let _ = writeln!(md, "|---|---|---|---|---|---|---|---|");
+    for (mode, s) in &runs {
+        let fps = s.frames as f64 / s.wall_time_s.max(1e-9);
+        let rt = s.data_duration_s / s.wall_time_s.max(1e-9);
+        let ate = s
+            .evaluation
+            .as_ref()
+            .and_then(|e| e.pointer("/ate/stats/rmse"))
+            .and_then(|v| v.as_f64())
+            .map_or("–".into(), |v| format!("{:.3}", v * 100.0));
+        let _ = writeln!(
+            md,
+            "| {mode} | {} | {:.2} | {:.2} | {:.1} | {:.2} | {} | {ate} |",
+            s.frames, s.wall_time_s, s.data_duration_s, fps, rt, s.keyframes
+        );
+    }
+    crate::io::atomic_write(&out.join("bench_tracking.md"), md.as_bytes())?;
+    Ok(md)
+}
