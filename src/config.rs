@@ -37,6 +37,13 @@ pub struct CameraConfig {
     pub depth_scale: f64,
     #[serde(default = "default_fps")]
     pub fps: f64,
+    /// Rolling-shutter readout: seconds from the exposure of the first image row to the last
+    /// (0 = global shutter). The frame's time stamp is taken to be the middle row's time, and
+    /// the tracker and bundle adjustment place every keypoint at its own row's pose (a
+    /// constant-velocity model of the camera). A Kinect's colour camera is rolling shutter;
+    /// ignoring it turns the skew of fast frames into centimetres of pose error.
+    #[serde(default)]
+    pub readout_s: f64,
 }
 
 fn default_depth_scale() -> f64 {
@@ -160,8 +167,13 @@ pub struct LoopClosingConfig {
     pub min_matches: u32,
     pub min_inliers: u32,
     pub min_inlier_ratio: f64,
-    /// Candidates that must agree before a closure pool is accepted.
+    /// Candidates (of different frames) that must agree before a closure pool is accepted.
     pub pool_size: u32,
+    /// Frames a valid candidate waits in the pool for others to agree with it.
+    pub pool_window_frames: u32,
+    /// Two candidates agree when their implied alignments differ by at most this much.
+    pub pool_max_translation_m: f64,
+    pub pool_max_rotation_deg: f64,
     /// Normalised chi-square per edge above which the map is inconsistent.
     pub max_normalized_chi2: f64,
 }
@@ -178,6 +190,9 @@ impl Default for LoopClosingConfig {
             min_inliers: 30,
             min_inlier_ratio: 0.3,
             pool_size: 3,
+            pool_window_frames: 30,
+            pool_max_translation_m: 0.1,
+            pool_max_rotation_deg: 3.0,
             max_normalized_chi2: 3.0,
         }
     }
@@ -318,6 +333,7 @@ impl Config {
             c.range("camera.height", cam.height as f64, 1.0, 16384.0);
             c.pos("camera.depth_scale", cam.depth_scale);
             c.range("camera.fps", cam.fps, 0.1, 1000.0);
+            c.range("camera.readout_s", cam.readout_s, 0.0, 1.0 / cam.fps);
         }
         let s = &self.sequence;
         c.range(
@@ -441,6 +457,24 @@ impl Config {
             1.0,
         );
         c.range("loop_closing.pool_size", l.pool_size as f64, 1.0, 1000.0);
+        c.range(
+            "loop_closing.pool_window_frames",
+            l.pool_window_frames as f64,
+            1.0,
+            100000.0,
+        );
+        c.range(
+            "loop_closing.pool_max_translation_m",
+            l.pool_max_translation_m,
+            0.0,
+            100.0,
+        );
+        c.range(
+            "loop_closing.pool_max_rotation_deg",
+            l.pool_max_rotation_deg,
+            0.0,
+            180.0,
+        );
         c.pos("loop_closing.max_normalized_chi2", l.max_normalized_chi2);
         let k = &self.controller;
         c.range(

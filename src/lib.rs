@@ -8,11 +8,13 @@ pub mod io;
 
 pub use error::{Error, Result};
 pub mod aligner;
+pub mod atlas;
 pub mod bench;
 pub mod control;
 pub mod eval;
 pub mod geometry;
 pub mod initializer;
+pub mod loop_validator;
 pub mod map;
 pub mod map_merger;
 pub mod optim;

@@ -2,13 +2,14 @@
 //! so that iteration order, and with it every output, is deterministic.
 
 use crate::preprocess::{Descriptor, FeatureGrid, Keypoint, Measurement, hamming};
-use nalgebra::{Isometry3, Point3, Vector3};
+use nalgebra::{Isometry3, Point3, Vector3, Vector6};
+use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, BTreeSet};
 
 pub type KfId = u32;
 pub type PointId = u32;
 
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct MapPoint {
     pub id: PointId,
     pub position: Vector3<f64>,
@@ -27,13 +28,16 @@ pub struct MapPoint {
     pub first_kf: KfId,
 }
 
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Keyframe {
     pub id: KfId,
     pub frame: usize,
     pub t: f64,
     /// World-to-camera.
     pub pose_cw: Isometry3<f64>,
+    /// Camera velocity when the keyframe was taken (world-to-camera twist per second), for
+    /// the rolling-shutter model: row `y` was exposed at `ImageGeometry::shutter(twist, y)·T_cw`.
+    pub twist: Vector6<f64>,
     pub keypoints: Vec<Keypoint>,
     pub descriptors: Vec<Descriptor>,
     pub depth: Vec<f32>,
@@ -51,6 +55,7 @@ impl Keyframe {
             frame: m.frame,
             t: m.t,
             pose_cw,
+            twist: Vector6::zeros(),
             keypoints: m.keypoints.clone(),
             descriptors: m.descriptors.clone(),
             depth: m.depth.clone(),
@@ -77,7 +82,7 @@ impl Keyframe {
 }
 
 /// One map: a connected set of keyframes and points in one coordinate frame.
-#[derive(Debug, Clone, Default)]
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
 pub struct Map {
     pub id: u32,
     pub keyframes: BTreeMap<KfId, Keyframe>,
@@ -91,6 +96,34 @@ impl Map {
         Self {
             id,
             ..Default::default()
+        }
+    }
+
+    /// The ids the next keyframe and point would get.
+    pub fn next_ids(&self) -> (KfId, PointId) {
+        (self.next_kf, self.next_point)
+    }
+
+    /// Moves the id counters past `floor` (ids stay unique across the atlas's maps).
+    pub fn reserve_ids(&mut self, floor: (KfId, PointId)) {
+        self.next_kf = self.next_kf.max(floor.0);
+        self.next_point = self.next_point.max(floor.1);
+    }
+
+    /// Takes over every keyframe and point of `other` (already in this map's frame; ids are
+    /// unique across the atlas).
+    pub fn absorb(&mut self, other: Map) {
+        let (k, p) = other.next_ids();
+        self.reserve_ids((k, p));
+        self.keyframes.extend(other.keyframes);
+        self.points.extend(other.points);
+    }
+
+    /// Recomputes what a saved map does not store.
+    pub fn rebuild_after_load(&mut self) {
+        for kf in self.keyframes.values_mut() {
+            let (w, h) = kf.grid.size();
+            kf.grid = FeatureGrid::new(w, h, &kf.keypoints);
         }
     }
 

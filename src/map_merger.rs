@@ -231,6 +231,7 @@ impl MapMerger {
         track: &TrackResult,
     ) -> MergeReport {
         let kf = map.add_keyframe(m, track.pose_cw);
+        map.keyframes.get_mut(&kf).expect("just added").twist = track.twist;
         let mut report = MergeReport {
             keyframe: kf,
             ..Default::default()
@@ -242,16 +243,17 @@ impl MapMerger {
                 }
             }
         }
-        // New points from depth for unmatched keypoints closer than the depth limit.
-        let pose_wc = track.pose_cw.inverse();
+        // New points from depth for unmatched keypoints closer than the depth limit, each from
+        // the pose of its own image row (rolling shutter).
         for i in 0..m.len() {
             let d = m.depth[i] as f64;
             if d <= 0.0 || d > self.cfg.max_point_depth_m || map.keyframes[&kf].points[i].is_some()
             {
                 continue;
             }
-            let pw =
-                (pose_wc * Point3::from(backproject(&self.geo.intr, &m.keypoints[i].un, d))).coords;
+            let kp = &m.keypoints[i];
+            let pose_wc = (self.geo.shutter(&track.twist, kp.raw.y) * track.pose_cw).inverse();
+            let pw = (pose_wc * Point3::from(backproject(&self.geo.intr, &kp.un, d))).coords;
             let id = map.add_point(kf, i, pw, self.geo.scale_factor, self.geo.n_levels);
             self.recent.push((id, kf));
             report.new_points += 1;
@@ -514,6 +516,7 @@ pub fn prepare_ba(
                     Observation::Mono { uv }
                 },
                 info: octave_information(key.keypoints[kp].octave as u32),
+                shutter: geo.shutter(&key.twist, key.keypoints[kp].raw.y),
             });
             obs_ref.push((*pid, *k));
         }

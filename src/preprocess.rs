@@ -29,7 +29,7 @@ pub fn hamming(a: &Descriptor, b: &Descriptor) -> u32 {
     d
 }
 
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Keypoint {
     /// Position in the raw (distorted) image, level-0 pixels.
     pub raw: Vector2<f64>,
@@ -67,12 +67,14 @@ impl Measurement {
     }
 }
 
-/// Buckets keypoint indices by undistorted position, for fast projection search.
-#[derive(Debug, Clone)]
+/// Buckets keypoint indices by undistorted position, for fast projection search. Saved maps
+/// keep only the image size; the buckets are rebuilt on load.
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct FeatureGrid {
     cols: usize,
     rows: usize,
     cell: f64,
+    #[serde(skip)]
     cells: Vec<Vec<u32>>,
 }
 
@@ -95,6 +97,14 @@ impl FeatureGrid {
             cell,
             cells,
         }
+    }
+
+    /// The image size the grid covers (in whole cells).
+    pub fn size(&self) -> (u32, u32) {
+        (
+            (self.cols as f64 * self.cell) as u32,
+            (self.rows as f64 * self.cell) as u32,
+        )
     }
 
     /// Indices of keypoints within `r` pixels of (x, y) whose octave is in [min, max].
@@ -143,6 +153,8 @@ pub struct ImageGeometry {
     pub n_levels: u32,
     /// Scale of each pyramid level relative to level 0.
     pub scales: Vec<f64>,
+    /// Rolling-shutter readout time, first to last row (seconds; 0 = global shutter).
+    pub readout_s: f64,
 }
 
 impl ImageGeometry {
@@ -160,7 +172,50 @@ impl ImageGeometry {
             scale_factor,
             n_levels,
             scales: (0..n_levels).map(|l| scale_factor.powi(l as i32)).collect(),
+            readout_s: 0.0,
         }
+    }
+
+    /// The same geometry for a rolling-shutter camera.
+    pub fn with_readout(mut self, readout_s: f64) -> Self {
+        self.readout_s = readout_s;
+        self
+    }
+
+    /// Exposure time of image row `y` relative to the frame's stamp (the middle row).
+    pub fn row_time(&self, y: f64) -> f64 {
+        (y / self.height - 0.5) * self.readout_s
+    }
+
+    /// Camera motion between the frame's stamp and the exposure of row `y`, for a camera
+    /// moving with world-to-camera twist `twist` (per second): the row sees the world from
+    /// `shutter · T_cw`. Identity for a global shutter or a still camera.
+    pub fn shutter(&self, twist: &nalgebra::Vector6<f64>, y: f64) -> nalgebra::Isometry3<f64> {
+        if self.readout_s == 0.0 || *twist == nalgebra::Vector6::zeros() {
+            nalgebra::Isometry3::identity()
+        } else {
+            crate::optim::se3::exp(&(twist * self.row_time(y)))
+        }
+    }
+
+    /// [`ImageGeometry::project_in_image`] for a rolling-shutter camera: the point is
+    /// projected with the pose of the row it lands on (one fixed-point step, plenty at
+    /// the few-pixel skew of real cameras).
+    pub fn project_moving(
+        &self,
+        pose_cw: &nalgebra::Isometry3<f64>,
+        twist: &nalgebra::Vector6<f64>,
+        p_w: &nalgebra::Vector3<f64>,
+    ) -> Option<(Vector2<f64>, nalgebra::Vector3<f64>)> {
+        let p = nalgebra::Point3::from(*p_w);
+        let p_c = (pose_cw * p).coords;
+        let uv = self.project_in_image(&p_c)?;
+        let s = self.shutter(twist, uv.y);
+        if s == nalgebra::Isometry3::identity() {
+            return Some((uv, p_c));
+        }
+        let p_c = (s * pose_cw * p).coords;
+        Some((self.project_in_image(&p_c)?, p_c))
     }
 
     /// Pixel of a camera-frame point, if it is in front of the camera and inside the image.

@@ -78,7 +78,7 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
         bf: camera.fx * VIRTUAL_BASELINE_M,
     };
     let mut pre = Preprocessor::new(&camera, &config.orb)?;
-    let mut machine = StateMachine::new(&config, intr, camera.width, camera.height);
+    let mut machine = StateMachine::new(&config, &camera, intr);
     if opts.threaded {
         machine.set_threaded();
     }

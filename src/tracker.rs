@@ -9,9 +9,10 @@
 use crate::aligner::pnp_ransac;
 use crate::config::TrackerConfig;
 use crate::map::{KfId, Map, PointId};
+use crate::optim::se3;
 use crate::optim::{Observation, PoseObservation, PoseParams, octave_information, refine_pose};
 use crate::preprocess::{Descriptor, ImageGeometry, Measurement, hamming};
-use nalgebra::{Isometry3, Vector2, Vector3};
+use nalgebra::{Isometry3, Vector2, Vector3, Vector6};
 
 /// How the pose of a frame was found.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -36,13 +37,22 @@ pub struct TrackResult {
     /// Local-map points predicted visible in this frame (for the map merger's culling
     /// statistics: a point found in too few of the frames that should see it is culled).
     pub visible: Vec<PointId>,
+    /// Camera velocity at this frame (world-to-camera twist per second; zero when unknown),
+    /// which places each keypoint at its row's pose on a rolling-shutter camera.
+    pub twist: Vector6<f64>,
+    /// Mean χ² (information-weighted squared reprojection error) of the inliers: how well
+    /// the camera model explains the frame (used to calibrate the rolling-shutter readout).
+    pub mean_chi2: f64,
 }
 
 pub struct Tracker {
     cfg: TrackerConfig,
     geo: ImageGeometry,
     last_pose: Option<Isometry3<f64>>,
+    last_t: Option<f64>,
     velocity: Option<Isometry3<f64>>,
+    /// Velocity used for the rolling-shutter model of the frame being tracked.
+    twist: Vector6<f64>,
     last_matches: Vec<(usize, PointId)>,
     /// Orientation of each key point of the last tracked frame (rotation-consistency check).
     last_angles: Vec<f32>,
@@ -70,7 +80,9 @@ impl Tracker {
             cfg: cfg.clone(),
             geo,
             last_pose: None,
+            last_t: None,
             velocity: None,
+            twist: Vector6::zeros(),
             last_matches: Vec::new(),
             last_angles: Vec::new(),
             reference_kf: None,
@@ -81,11 +93,14 @@ impl Tracker {
     pub fn reset(
         &mut self,
         pose_cw: Isometry3<f64>,
+        t: f64,
         matches: &[Option<PointId>],
         reference_kf: KfId,
     ) {
         self.last_pose = Some(pose_cw);
+        self.last_t = Some(t);
         self.velocity = None;
+        self.twist = Vector6::zeros();
         self.last_matches = matches
             .iter()
             .enumerate()
@@ -98,6 +113,7 @@ impl Tracker {
     /// Forgets the motion model (tracking lost).
     pub fn lose(&mut self) {
         self.velocity = None;
+        self.twist = Vector6::zeros();
         self.last_matches.clear();
     }
 
@@ -112,7 +128,19 @@ impl Tracker {
         let Some((pose, matches, method)) = attempt else {
             return self.lost(m);
         };
-        let (pose, matches, n_inliers, visible) = self.with_local_map(m, map, pose, matches);
+        let (mut pose, mut matches, mut n_inliers, visible) =
+            self.with_local_map(m, map, pose, matches);
+        // Rolling shutter: with the pose known, the velocity through this frame is known
+        // better than the motion model's guess; refine once more with it.
+        let dt = self.last_t.map_or(0.0, |t| m.t - t);
+        if let Some(last) = self
+            .last_pose
+            .filter(|_| self.geo.readout_s > 0.0 && dt < 0.25)
+        {
+            self.twist = se3::twist_between(&last, &pose, dt);
+            (pose, matches, n_inliers) = self.refine(m, map, &pose, matches);
+        }
+        let mean_chi2 = self.mean_chi2(m, map, &pose, &matches);
         let able = n_inliers >= self.cfg.min_inliers as usize;
         if !able {
             return self.lost(m);
@@ -126,6 +154,7 @@ impl Tracker {
             self.velocity = Some(v);
         }
         self.last_pose = Some(pose);
+        self.last_t = Some(m.t);
         self.last_angles = m.keypoints.iter().map(|k| k.angle).collect();
         self.last_matches = matches
             .iter()
@@ -143,6 +172,8 @@ impl Tracker {
             method,
             reference_kf: self.reference_kf,
             visible,
+            twist: self.twist,
+            mean_chi2,
         }
     }
 
@@ -156,6 +187,8 @@ impl Tracker {
             method: TrackMethod::Lost,
             reference_kf: self.reference_kf,
             visible: Vec::new(),
+            twist: Vector6::zeros(),
+            mean_chi2: 0.0,
         }
     }
 
@@ -302,18 +335,38 @@ impl Tracker {
         (r.0, r.1, r.2, visible)
     }
 
-    /// Pose-only refinement; returns the pose, the inlier matches and their count.
-    fn refine(
+    /// Mean χ² of the matched observations at `pose`.
+    fn mean_chi2(
         &self,
         m: &Measurement,
         map: &Map,
-        init: &Isometry3<f64>,
-        matches: Vec<Option<PointId>>,
-    ) -> (Isometry3<f64>, Vec<Option<PointId>>, usize) {
+        pose: &Isometry3<f64>,
+        matches: &[Option<PointId>],
+    ) -> f64 {
+        let (sum, n) = self
+            .observations(m, map, matches)
+            .1
+            .iter()
+            .filter_map(|o| {
+                o.obs
+                    .residual_through(&self.geo.intr, &o.shutter, pose, &o.point_w)
+                    .map(|r| o.info * r.norm_squared())
+            })
+            .fold((0.0, 0usize), |(s, n), c| (s + c, n + 1));
+        sum / n.max(1) as f64
+    }
+
+    /// The pose-refinement observations of the matched keypoints (and their indices).
+    fn observations(
+        &self,
+        m: &Measurement,
+        map: &Map,
+        matches: &[Option<PointId>],
+    ) -> (Vec<usize>, Vec<PoseObservation>) {
         let idx: Vec<usize> = (0..m.len())
             .filter(|&i| matches[i].is_some_and(|p| map.points.contains_key(&p)))
             .collect();
-        let obs: Vec<PoseObservation> = idx
+        let obs = idx
             .iter()
             .map(|&i| {
                 let kp = &m.keypoints[i];
@@ -329,9 +382,22 @@ impl Tracker {
                         Observation::Mono { uv: kp.un }
                     },
                     info: octave_information(kp.octave as u32),
+                    shutter: self.geo.shutter(&self.twist, kp.raw.y),
                 }
             })
             .collect();
+        (idx, obs)
+    }
+
+    /// Pose-only refinement; returns the pose, the inlier matches and their count.
+    fn refine(
+        &self,
+        m: &Measurement,
+        map: &Map,
+        init: &Isometry3<f64>,
+        matches: Vec<Option<PointId>>,
+    ) -> (Isometry3<f64>, Vec<Option<PointId>>, usize) {
+        let (idx, obs) = self.observations(m, map, &matches);
         let r = refine_pose(init, &obs, &self.geo.intr, &PoseParams::default());
         let mut out = vec![None; m.len()];
         for (k, &i) in idx.iter().enumerate() {
@@ -367,8 +433,7 @@ impl Tracker {
             if already.contains(&c.id) {
                 continue;
             }
-            let pc = pose * nalgebra::Point3::from(c.position);
-            let Some(uv) = self.geo.project_in_image(&pc.coords) else {
+            let Some((uv, _)) = self.geo.project_moving(pose, &self.twist, &c.position) else {
                 continue;
             };
             let po = c.position - center;

@@ -76,6 +76,7 @@ fn arc_scene(seed: u64, n_cams: usize, n_points: usize, obs_per_point: Option<us
                 point: p,
                 obs,
                 info: octave_information(octave),
+                shutter: Isometry3::identity(),
             });
         }
     }

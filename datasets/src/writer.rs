@@ -183,6 +183,8 @@ pub fn camera_config(k: &Intrinsics, fps: f64, scenario: &str) -> CameraConfig {
         height: k.height,
         depth_scale: DEPTH_SCALE,
         fps,
+        // The renderer exposes every pixel at once (global shutter).
+        readout_s: 0.0,
     }
 }
 

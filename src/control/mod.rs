@@ -5,7 +5,9 @@
 //! → [!able_to_track] → Idle, and Interruptible → Final at the end of data. Relocalize,
 //! Localized and CorruptedMap arrive with the multi-map atlas.
 
-use crate::config::Config;
+pub mod spec;
+
+use crate::config::{CameraConfig, Config};
 use crate::initializer::Initializer;
 use crate::map::{KfId, Map};
 use crate::map_merger::MapMerger;
@@ -47,9 +49,10 @@ pub struct StateMachine {
 }
 
 impl StateMachine {
-    pub fn new(config: &Config, intr: Intrinsics, width: u32, height: u32) -> Self {
+    pub fn new(config: &Config, camera: &CameraConfig, intr: Intrinsics) -> Self {
         let (sf, nl) = (config.orb.scale_factor, config.orb.n_levels);
-        let geo = ImageGeometry::new(intr, width, height, sf, nl);
+        let geo = ImageGeometry::new(intr, camera.width, camera.height, sf, nl)
+            .with_readout(camera.readout_s);
         Self {
             state: State::Init,
             initializer: Initializer {
@@ -110,7 +113,7 @@ impl StateMachine {
                     timing.time("initialize", || self.initializer.try_initialize(m, id))
                 {
                     let matches = map.keyframes[&kf].points.clone();
-                    self.tracker.reset(Isometry3::identity(), &matches, kf);
+                    self.tracker.reset(Isometry3::identity(), m.t, &matches, kf);
                     self.merger.started(m.frame);
                     self.maps.push(map);
                     self.flags.initialized = true;
@@ -125,11 +128,12 @@ impl StateMachine {
                 let track = timing.time("track", || self.tracker.track(m, map));
                 self.flags.able_to_track = track.able_to_track;
                 tracing::debug!(
-                    "frame {}: {:?}, {} inliers of {} key points",
+                    "frame {}: {:?}, {} inliers of {} key points, mean chi2 {:.3}",
                     m.frame,
                     track.method,
                     track.n_inliers,
-                    m.len()
+                    m.len(),
+                    track.mean_chi2
                 );
                 if track.able_to_track {
                     if self.state == State::Idle {

@@ -55,6 +55,10 @@ pub struct BaObservation {
     pub obs: Observation,
     /// Isotropic information 1/σ² (see [`super::reprojection::octave_information`]).
     pub info: f64,
+    /// Camera motion from the keyframe's reference time to the exposure of this keypoint's
+    /// row (rolling shutter): the point is seen at `shutter · T_cw`. Identity for a global
+    /// shutter.
+    pub shutter: Isometry3<f64>,
 }
 
 /// A bundle-adjustment problem; [`solve`] updates poses and points in place.
@@ -322,8 +326,9 @@ struct State {
 
 /// χ² of observation `o` in `state`, `None` when it cannot be evaluated.
 fn obs_chi2(problem: &BaProblem, state: &State, o: &BaObservation) -> Option<f64> {
-    let r = o.obs.residual(
+    let r = o.obs.residual_through(
         &problem.intrinsics,
+        &o.shutter,
         &state.poses[o.camera],
         &state.points[o.point],
     )?;
@@ -385,8 +390,9 @@ fn linearize(
         if cv.is_none() && pv.is_none() {
             continue;
         }
-        let Some(lin) = o.obs.linearize(
+        let Some(lin) = o.obs.linearize_through(
             &problem.intrinsics,
+            &o.shutter,
             &state.poses[o.camera],
             &state.points[o.point],
         ) else {
@@ -815,6 +821,7 @@ mod tests {
                     point: p,
                     obs,
                     info: 1.0 / (1.0 + (p % 3) as f64),
+                    shutter: Isometry3::identity(),
                 });
             }
         }

@@ -19,6 +19,9 @@ pub struct PoseObservation {
     pub obs: Observation,
     /// Isotropic information (1/σ², see [`super::reprojection::octave_information`]).
     pub info: f64,
+    /// Camera motion from the frame's reference time to the exposure of this keypoint's row
+    /// (rolling shutter): the point is seen at `shutter · T_cw`. Identity for a global shutter.
+    pub shutter: Isometry3<f64>,
 }
 
 /// Parameters of [`refine_pose`]; the defaults are ORB-SLAM's.
@@ -70,7 +73,7 @@ fn chi2_of(o: &PoseObservation, intr: &Intrinsics, pose: &Isometry3<f64>) -> Opt
     if !(o.info > 0.0 && o.info.is_finite()) {
         return None;
     }
-    let r = o.obs.residual(intr, pose, &o.point_w)?;
+    let r = o.obs.residual_through(intr, &o.shutter, pose, &o.point_w)?;
     Some(o.info * r.norm_squared())
 }
 
@@ -130,7 +133,7 @@ fn levenberg_marquardt(
         let mut h = Matrix6::zeros();
         let mut b = Vector6::zeros();
         for (o, _) in obs.iter().zip(active).filter(|(_, a)| **a) {
-            let Some(lin) = o.obs.linearize(intr, &pose, &o.point_w) else {
+            let Some(lin) = o.obs.linearize_through(intr, &o.shutter, &pose, &o.point_w) else {
                 continue;
             };
             let chi2 = o.info * lin.residual.norm_squared();

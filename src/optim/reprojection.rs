@@ -185,6 +185,37 @@ impl Observation {
     }
 }
 
+impl Observation {
+    /// Residual of a point seen through an extra camera motion `shutter` applied after the
+    /// pose (`X_c = shutter · T_cw · X`): a rolling-shutter row exposed slightly before or
+    /// after the frame's reference time. The identity gives [`Observation::residual`].
+    pub fn residual_through(
+        &self,
+        intr: &Intrinsics,
+        shutter: &Isometry3<f64>,
+        pose_cw: &Isometry3<f64>,
+        point_w: &Vector3<f64>,
+    ) -> Option<Vector3<f64>> {
+        self.residual(intr, &(shutter * pose_cw), point_w)
+    }
+
+    /// [`Observation::linearize`] through `shutter`, still with respect to the left
+    /// perturbation of `pose_cw`: `S·exp(δ)·T = exp(Ad_S δ)·S·T`, so `J_δ = J_{δ'} · Ad_S`.
+    pub fn linearize_through(
+        &self,
+        intr: &Intrinsics,
+        shutter: &Isometry3<f64>,
+        pose_cw: &Isometry3<f64>,
+        point_w: &Vector3<f64>,
+    ) -> Option<Linearization> {
+        let mut lin = self.linearize(intr, &(shutter * pose_cw), point_w)?;
+        if *shutter != Isometry3::identity() {
+            lin.jac_pose *= super::se3::adjoint(shutter);
+        }
+        Some(lin)
+    }
+}
+
 /// Information weight ORB-SLAM gives a keypoint detected at pyramid `octave`:
 /// `1/σ²` with σ = 1.2^octave pixels.
 pub fn octave_information(octave: u32) -> f64 {
@@ -281,6 +312,41 @@ mod tests {
             check_jacobians(&Observation::Mono { uv }, &pose, &p_w);
             let depth = rng.random_range(0.5..6.0);
             check_jacobians(&Observation::Rgbd { uv, depth }, &pose, &p_w);
+        }
+    }
+
+    #[test]
+    fn jacobians_through_a_shutter_motion_match_central_differences() {
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        for _ in 0..100 {
+            let (pose, p_w) = random_setup(&mut rng);
+            let shutter = se3::exp(&Vector6::from_fn(|_, _| rng.random_range(-0.05..0.05)));
+            let uv = Vector2::new(rng.random_range(0.0..640.0), rng.random_range(0.0..480.0));
+            let obs = Observation::Rgbd {
+                uv,
+                depth: rng.random_range(0.5..6.0),
+            };
+            let Some(lin) = obs.linearize_through(&INTR, &shutter, &pose, &p_w) else {
+                continue;
+            };
+            let h = 1e-6;
+            for k in 0..6 {
+                let mut d = Vector6::zeros();
+                d[k] = h;
+                let rp = obs.residual_through(&INTR, &shutter, &se3::retract(&pose, &d), &p_w);
+                d[k] = -h;
+                let rm = obs.residual_through(&INTR, &shutter, &se3::retract(&pose, &d), &p_w);
+                let num = (rp.unwrap() - rm.unwrap()) / (2.0 * h);
+                for i in 0..3 {
+                    let e = rel_err(num[i], lin.jac_pose[(i, k)]);
+                    assert!(
+                        e < 1e-6,
+                        "J[{i},{k}] {} vs {}",
+                        lin.jac_pose[(i, k)],
+                        num[i]
+                    );
+                }
+            }
         }
     }
 

@@ -120,6 +120,29 @@ pub fn retract(t: &Isometry3<f64>, delta: &Vector6<f64>) -> Isometry3<f64> {
     out
 }
 
+/// Adjoint of `T` for the (ω, υ) ordering: `T · exp(δ) = exp(Ad_T δ) · T`, and so
+/// `S · exp(δ) · T = exp(Ad_S δ) · S · T`, which lets a residual evaluated through an extra
+/// left factor `S` reuse the ordinary left-perturbation Jacobian (times `Ad_S`).
+pub fn adjoint(t: &Isometry3<f64>) -> nalgebra::Matrix6<f64> {
+    let r = t.rotation.to_rotation_matrix().into_inner();
+    let mut ad = nalgebra::Matrix6::zeros();
+    ad.fixed_view_mut::<3, 3>(0, 0).copy_from(&r);
+    ad.fixed_view_mut::<3, 3>(3, 3).copy_from(&r);
+    ad.fixed_view_mut::<3, 3>(3, 0)
+        .copy_from(&(skew(&t.translation.vector) * r));
+    ad
+}
+
+/// Constant-velocity twist (per second) that carries world-to-camera pose `from` to `to` in
+/// `dt` seconds: `to = exp(dt · ξ) · from`. Zero when `dt` is not positive.
+pub fn twist_between(from: &Isometry3<f64>, to: &Isometry3<f64>, dt: f64) -> Vector6<f64> {
+    if dt > 0.0 && dt.is_finite() {
+        log(&(to * from.inverse())) / dt
+    } else {
+        Vector6::zeros()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -131,6 +154,28 @@ mod tests {
             let s = if i < 3 { angle_scale } else { 2.0 };
             rng.random_range(-s..s)
         })
+    }
+
+    #[test]
+    fn adjoint_moves_a_perturbation_across_a_pose() {
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        for _ in 0..50 {
+            let t = exp(&random_delta(&mut rng, 1.0));
+            let d = random_delta(&mut rng, 0.3) * 0.1;
+            let lhs = t * exp(&d);
+            let rhs = exp(&(adjoint(&t) * d)) * t;
+            assert_iso_close(&lhs, &rhs, 1e-9);
+        }
+    }
+
+    #[test]
+    fn twist_between_recovers_the_motion() {
+        let mut rng = ChaCha8Rng::seed_from_u64(12);
+        let a = exp(&random_delta(&mut rng, 1.0));
+        let xi = random_delta(&mut rng, 0.5);
+        let b = exp(&(xi * 0.04)) * a;
+        assert!((twist_between(&a, &b, 0.04) - xi).norm() < 1e-9);
+        assert_eq!(twist_between(&a, &b, 0.0), Vector6::zeros());
     }
 
     fn assert_iso_close(a: &Isometry3<f64>, b: &Isometry3<f64>, tol: f64) {

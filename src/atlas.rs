@@ -1,0 +1,670 @@
+//! The atlas: every map of a run (and of a loaded session), and the closure pools that joined
+//! or corrected them.
+//!
+//! A new map starts whenever tracking is re-acquired after a loss; a validated relocalization
+//! merges two maps; a validated loop closure corrects one. Each accepted pool is a
+//! *transaction*: the atlas keeps a snapshot of the maps it touched, so that the Corrupted Map
+//! state can undo it (paper section V: "the wrong loop closures are removed and the graph is
+//! optimized again"). Undo restores the maps exactly as they were before the pool; whatever was
+//! built on top of a wrong pool was built on a corrupted map and goes with it.
+//!
+//! Keyframe and point ids are unique across the whole atlas (one high-water mark), so maps can
+//! be merged by moving entries and a rolled-back id is never handed out again.
+
+use crate::error::{Error, Result};
+use crate::geometry::Sim3;
+use crate::map::{KfId, Map, PointId};
+use nalgebra::{Isometry3, Matrix6, Translation3, UnitQuaternion};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::path::Path;
+
+pub type MapId = u32;
+pub type PoolId = u32;
+
+/// A closure constraint between two keyframes, as the pose graph uses it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ClosureEdge {
+    pub pool: PoolId,
+    /// The keyframe (or frame made keyframe) that recognised the place.
+    pub query: KfId,
+    /// The keyframe it was recognised in.
+    pub matched: KfId,
+    /// Measured pose of `query` in the frame of `matched`: `T_matched,w · T_query,w⁻¹`.
+    pub relative: Isometry3<f64>,
+    /// Information (inverse covariance) of `relative`, (ω, υ) order.
+    pub information: Matrix6<f64>,
+}
+
+/// What a pool did.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub enum PoolKind {
+    /// A loop closure inside one map.
+    Loop { map: MapId },
+    /// A relocalization that merged map `from` into map `into` with `alignment` (from-world →
+    /// into-world; scale 1 with depth).
+    Merge {
+        into: MapId,
+        from: MapId,
+        alignment: SimilarityRecord,
+    },
+}
+
+/// A [`Sim3`] in a serialisable form.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct SimilarityRecord {
+    pub rotation: UnitQuaternion<f64>,
+    pub translation: nalgebra::Vector3<f64>,
+    pub scale: f64,
+}
+
+impl From<&Sim3> for SimilarityRecord {
+    fn from(s: &Sim3) -> Self {
+        Self {
+            rotation: UnitQuaternion::from_rotation_matrix(&s.rotation),
+            translation: s.translation,
+            scale: s.scale,
+        }
+    }
+}
+
+impl From<&SimilarityRecord> for Sim3 {
+    fn from(s: &SimilarityRecord) -> Self {
+        Sim3 {
+            rotation: s.rotation.to_rotation_matrix(),
+            translation: s.translation,
+            scale: s.scale,
+        }
+    }
+}
+
+/// One accepted closure pool: a transaction of the atlas.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct PoolRecord {
+    pub id: PoolId,
+    pub kind: PoolKind,
+    /// Frame and stamp at which the pool was accepted.
+    pub frame: usize,
+    pub t: f64,
+    pub edges: Vec<ClosureEdge>,
+    pub rolled_back: bool,
+    /// The touched maps as they were before the pool (not saved: a loaded atlas cannot undo
+    /// the previous session's pools).
+    #[serde(skip)]
+    undo: Vec<Map>,
+}
+
+impl PoolRecord {
+    /// Maps this pool touched.
+    pub fn maps(&self) -> Vec<MapId> {
+        match &self.kind {
+            PoolKind::Loop { map } => vec![*map],
+            PoolKind::Merge { into, from, .. } => vec![*into, *from],
+        }
+    }
+
+    /// Whether this pool can still be undone in this session.
+    pub fn undoable(&self) -> bool {
+        !self.rolled_back && !self.undo.is_empty()
+    }
+}
+
+/// What an undo restored.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Rollback {
+    pub pool: PoolId,
+    /// The maps as they are again.
+    pub maps: Vec<MapId>,
+    /// Keyframes built on top of the pool, discarded with it.
+    pub discarded_keyframes: usize,
+}
+
+/// Every map of the run.
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub struct Atlas {
+    pub maps: BTreeMap<MapId, Map>,
+    pub pools: Vec<PoolRecord>,
+    next_map: MapId,
+    /// Next unused keyframe and point ids across every map, past and present.
+    high_water: (KfId, PointId),
+    /// Maps that came from a loaded atlas file (an earlier session).
+    pub loaded: Vec<MapId>,
+}
+
+/// File header: magic, then version, payload length and CRC-32 of the payload.
+const MAGIC: &[u8; 13] = b"homing-atlas\n";
+pub const ATLAS_VERSION: u32 = 1;
+
+/// What is saved besides the maps, to refuse an atlas made with another camera.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct AtlasCamera {
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    pub width: u32,
+    pub height: u32,
+}
+
+#[derive(Serialize, Deserialize)]
+struct AtlasFile {
+    camera: AtlasCamera,
+    /// Monocular maps have no metric scale; mixing them with RGB-D sessions is refused.
+    mono: bool,
+    atlas: Atlas,
+}
+
+impl Atlas {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Adds an empty map and returns its id.
+    pub fn new_map(&mut self) -> MapId {
+        let map = self.blank_map();
+        self.insert_map(map)
+    }
+
+    /// An empty map with the next id and id counters past every id in the atlas, for a
+    /// component to build (the initializer); install it with [`Atlas::insert_map`].
+    pub fn blank_map(&mut self) -> Map {
+        self.refresh_high_water();
+        let mut map = Map::new(self.next_map);
+        map.reserve_ids(self.high_water);
+        map
+    }
+
+    /// Installs a map made from [`Atlas::blank_map`].
+    pub fn insert_map(&mut self, mut map: Map) -> MapId {
+        let id = self.next_map;
+        self.next_map += 1;
+        // A map not made by blank_map would carry colliding ids; its id at least is fixed.
+        debug_assert_eq!(map.id, id, "insert_map wants a map from blank_map");
+        map.id = id;
+        self.note_ids(&map);
+        self.maps.insert(id, map);
+        id
+    }
+
+    /// The next map id [`Atlas::insert_map`] will hand out.
+    pub fn next_map_id(&self) -> MapId {
+        self.next_map
+    }
+
+    /// Prepares `map` to allocate ids (call before mapping in it): its counters move past every
+    /// id the atlas has ever handed out.
+    pub fn activate(&mut self, map: MapId) {
+        self.refresh_high_water();
+        if let Some(m) = self.maps.get_mut(&map) {
+            m.reserve_ids(self.high_water);
+        }
+    }
+
+    fn note_ids(&mut self, map: &Map) {
+        let (k, p) = map.next_ids();
+        self.high_water = (self.high_water.0.max(k), self.high_water.1.max(p));
+    }
+
+    fn refresh_high_water(&mut self) {
+        let ids: Vec<(KfId, PointId)> = self.maps.values().map(Map::next_ids).collect();
+        for (k, p) in ids {
+            self.high_water = (self.high_water.0.max(k), self.high_water.1.max(p));
+        }
+    }
+
+    /// The map with the most keyframes (ties: the lower id).
+    pub fn largest_map(&self) -> Option<MapId> {
+        self.maps
+            .values()
+            .max_by(|a, b| {
+                a.keyframes
+                    .len()
+                    .cmp(&b.keyframes.len())
+                    .then(b.id.cmp(&a.id))
+            })
+            .map(|m| m.id)
+    }
+
+    /// The map holding keyframe `kf`.
+    pub fn map_of_keyframe(&self, kf: KfId) -> Option<MapId> {
+        self.maps
+            .values()
+            .find(|m| m.keyframes.contains_key(&kf))
+            .map(|m| m.id)
+    }
+
+    pub fn n_keyframes(&self) -> usize {
+        self.maps.values().map(|m| m.keyframes.len()).sum()
+    }
+
+    /// Opens a transaction: snapshots the maps a new pool is about to touch and records it.
+    /// Returns the pool id; its edges are added with [`Atlas::add_edges`].
+    pub fn begin_pool(&mut self, kind: PoolKind, frame: usize, t: f64) -> PoolId {
+        self.refresh_high_water();
+        let id = self.pools.len() as PoolId;
+        let mut rec = PoolRecord {
+            id,
+            kind,
+            frame,
+            t,
+            edges: Vec::new(),
+            rolled_back: false,
+            undo: Vec::new(),
+        };
+        rec.undo = rec
+            .maps()
+            .iter()
+            .filter_map(|m| self.maps.get(m).cloned())
+            .collect();
+        self.pools.push(rec);
+        id
+    }
+
+    pub fn add_edges(&mut self, pool: PoolId, edges: impl IntoIterator<Item = ClosureEdge>) {
+        if let Some(p) = self.pools.get_mut(pool as usize) {
+            p.edges.extend(edges);
+        }
+    }
+
+    /// Closure edges of pools that stand (not rolled back) whose keyframes are both in `map`.
+    pub fn closure_edges(&self, map: MapId) -> Vec<ClosureEdge> {
+        let Some(m) = self.maps.get(&map) else {
+            return Vec::new();
+        };
+        self.pools
+            .iter()
+            .filter(|p| !p.rolled_back)
+            .flat_map(|p| p.edges.iter())
+            .filter(|e| m.keyframes.contains_key(&e.query) && m.keyframes.contains_key(&e.matched))
+            .cloned()
+            .collect()
+    }
+
+    /// Moves every keyframe and point of map `from` into map `into`, expressed in `into`'s frame
+    /// through `s` (from-world → into-world). `from` disappears.
+    pub fn merge(&mut self, into: MapId, from: MapId, s: &Sim3) -> Result<()> {
+        if into == from {
+            return Err(Error::invalid(format!(
+                "cannot merge map {into} into itself"
+            )));
+        }
+        let src = self
+            .maps
+            .remove(&from)
+            .ok_or_else(|| Error::invalid(format!("merge: no map {from}")))?;
+        let Some(dst) = self.maps.get_mut(&into) else {
+            self.maps.insert(from, src);
+            return Err(Error::invalid(format!("merge: no map {into}")));
+        };
+        let src = transformed(src, s);
+        dst.absorb(src);
+        self.refresh_high_water();
+        Ok(())
+    }
+
+    /// The most recent pool that stands and can be undone.
+    pub fn last_undoable_pool(&self) -> Option<PoolId> {
+        self.pools.iter().rev().find(|p| p.undoable()).map(|p| p.id)
+    }
+
+    /// Undoes pool `pool`: the maps it touched are restored as they were before it. Pools
+    /// accepted later that touch the same maps are undone first (they were built on it).
+    pub fn rollback(&mut self, pool: PoolId) -> Result<Vec<Rollback>> {
+        let Some(rec) = self.pools.get(pool as usize) else {
+            return Err(Error::invalid(format!("rollback: no pool {pool}")));
+        };
+        if !rec.undoable() {
+            return Err(Error::invalid(format!(
+                "rollback: pool {pool} cannot be undone (already undone, or from a loaded session)"
+            )));
+        }
+        let mut done = Vec::new();
+        // Later pools that share a map (directly or through a merge) go first, newest first.
+        let mut touched: std::collections::BTreeSet<MapId> = rec.maps().into_iter().collect();
+        let mut later: Vec<PoolId> = Vec::new();
+        for p in self.pools.iter().skip(pool as usize + 1) {
+            if p.undoable() && p.maps().iter().any(|m| touched.contains(m)) {
+                touched.extend(p.maps());
+                later.push(p.id);
+            }
+        }
+        for p in later.into_iter().rev() {
+            done.push(self.undo_one(p));
+        }
+        done.push(self.undo_one(pool));
+        self.refresh_high_water();
+        Ok(done)
+    }
+
+    fn undo_one(&mut self, pool: PoolId) -> Rollback {
+        let rec = &mut self.pools[pool as usize];
+        rec.rolled_back = true;
+        let snapshots = std::mem::take(&mut rec.undo);
+        let maps_now: Vec<MapId> = rec.maps();
+        let before: usize = maps_now
+            .iter()
+            .filter_map(|m| self.maps.get(m))
+            .map(|m| m.keyframes.len())
+            .sum();
+        let restored: usize = snapshots.iter().map(|m| m.keyframes.len()).sum();
+        let mut ids = Vec::new();
+        for snap in snapshots {
+            ids.push(snap.id);
+            self.maps.insert(snap.id, snap);
+        }
+        Rollback {
+            pool,
+            maps: ids,
+            discarded_keyframes: before.saturating_sub(restored),
+        }
+    }
+
+    /// Writes the atlas (versioned, checksummed, atomically).
+    pub fn save(&self, path: &Path, camera: AtlasCamera, mono: bool) -> Result<()> {
+        let file = AtlasFile {
+            camera,
+            mono,
+            atlas: self.clone(),
+        };
+        let payload = postcard::to_stdvec(&file)
+            .map_err(|e| Error::file(path, format!("cannot serialise the atlas: {e}")))?;
+        let mut bytes = Vec::with_capacity(payload.len() + 32);
+        bytes.extend_from_slice(MAGIC);
+        bytes.extend_from_slice(&ATLAS_VERSION.to_le_bytes());
+        bytes.extend_from_slice(&(payload.len() as u64).to_le_bytes());
+        bytes.extend_from_slice(&crc32fast::hash(&payload).to_le_bytes());
+        bytes.extend_from_slice(&payload);
+        crate::io::atomic_write(path, &bytes)
+    }
+
+    /// Reads an atlas written by [`Atlas::save`], refusing files of another version, camera or
+    /// modality, and truncated or corrupt files, with a message that says which.
+    pub fn load(path: &Path, camera: &AtlasCamera, mono: bool) -> Result<Atlas> {
+        let bytes =
+            std::fs::read(path).map_err(|e| Error::file(path, format!("cannot read: {e}")))?;
+        let header = MAGIC.len() + 4 + 8 + 4;
+        if bytes.len() < MAGIC.len() || &bytes[..MAGIC.len()] != MAGIC {
+            return Err(Error::file(path, "not a homing atlas file (bad magic)"));
+        }
+        if bytes.len() < header {
+            return Err(Error::file(
+                path,
+                "truncated atlas file (incomplete header)",
+            ));
+        }
+        let u32_at = |o: usize| u32::from_le_bytes(bytes[o..o + 4].try_into().expect("4 bytes"));
+        let version = u32_at(MAGIC.len());
+        if version != ATLAS_VERSION {
+            return Err(Error::file(
+                path,
+                format!(
+                    "atlas format version {version}; this homing reads version {ATLAS_VERSION}"
+                ),
+            ));
+        }
+        let len = u64::from_le_bytes(
+            bytes[MAGIC.len() + 4..MAGIC.len() + 12]
+                .try_into()
+                .expect("8 bytes"),
+        );
+        let crc = u32_at(MAGIC.len() + 12);
+        let payload = &bytes[header..];
+        if (payload.len() as u64) != len {
+            return Err(Error::file(
+                path,
+                format!(
+                    "truncated or padded atlas file: payload is {} bytes, header says {len}",
+                    payload.len()
+                ),
+            ));
+        }
+        if crc32fast::hash(payload) != crc {
+            return Err(Error::file(path, "corrupt atlas file (checksum mismatch)"));
+        }
+        let file: AtlasFile = postcard::from_bytes(payload)
+            .map_err(|e| Error::file(path, format!("corrupt atlas file: {e}")))?;
+        if file.mono != mono {
+            let kind = |m: bool| if m { "monocular" } else { "RGB-D" };
+            return Err(Error::file(
+                path,
+                format!(
+                    "the atlas is {} but this run is {}",
+                    kind(file.mono),
+                    kind(mono)
+                ),
+            ));
+        }
+        let c = &file.camera;
+        let close = |a: f64, b: f64| (a - b).abs() <= 1e-6 * a.abs().max(1.0);
+        if c.width != camera.width
+            || c.height != camera.height
+            || !close(c.fx, camera.fx)
+            || !close(c.fy, camera.fy)
+            || !close(c.cx, camera.cx)
+            || !close(c.cy, camera.cy)
+        {
+            return Err(Error::file(
+                path,
+                format!(
+                    "the atlas was made with another camera ({}x{} fx={} fy={} cx={} cy={}; this run: {}x{} fx={} fy={} cx={} cy={})",
+                    c.width,
+                    c.height,
+                    c.fx,
+                    c.fy,
+                    c.cx,
+                    c.cy,
+                    camera.width,
+                    camera.height,
+                    camera.fx,
+                    camera.fy,
+                    camera.cx,
+                    camera.cy
+                ),
+            ));
+        }
+        let mut atlas = file.atlas;
+        atlas.loaded = atlas.maps.keys().copied().collect();
+        atlas.refresh_high_water();
+        for m in atlas.maps.values_mut() {
+            m.rebuild_after_load();
+        }
+        Ok(atlas)
+    }
+}
+
+/// `map` expressed in another world frame: `s` maps its world coordinates to the new ones.
+fn transformed(mut map: Map, s: &Sim3) -> Map {
+    let rot = UnitQuaternion::from_rotation_matrix(&s.rotation);
+    for kf in map.keyframes.values_mut() {
+        // Camera centre and orientation move with the world; T'_cw = [R_cw Rᵀ | −R'_cw c'].
+        let c = s.transform_point(&kf.center());
+        let r_cw = kf.pose_cw.rotation * rot.inverse();
+        kf.pose_cw = Isometry3::from_parts(Translation3::from(-(r_cw * c)), r_cw);
+        // Camera-frame velocity: only its translational part scales.
+        for k in 3..6 {
+            kf.twist[k] *= s.scale;
+        }
+        for d in kf.depth.iter_mut() {
+            *d *= s.scale as f32;
+        }
+    }
+    for p in map.points.values_mut() {
+        p.position = s.transform_point(&p.position);
+        p.normal = rot * p.normal;
+        p.min_distance *= s.scale;
+        p.max_distance *= s.scale;
+    }
+    map
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::preprocess::{FeatureGrid, Keypoint, Measurement};
+    use nalgebra::{Point3, Rotation3, Vector2, Vector3};
+
+    fn measurement(frame: usize) -> Measurement {
+        let keypoints: Vec<Keypoint> = (0..10)
+            .map(|i| Keypoint {
+                raw: Vector2::new(10.0 * i as f64, 20.0),
+                un: Vector2::new(10.0 * i as f64, 20.0),
+                octave: 0,
+                angle: 0.0,
+                response: 1.0,
+            })
+            .collect();
+        Measurement {
+            frame,
+            t: frame as f64,
+            grid: FeatureGrid::new(640, 480, &keypoints),
+            descriptors: vec![[frame as u8; 32]; keypoints.len()],
+            depth: vec![1.0; keypoints.len()],
+            keypoints,
+        }
+    }
+
+    fn small_map(atlas: &mut Atlas, frame: usize) -> MapId {
+        let id = atlas.new_map();
+        let map = atlas.maps.get_mut(&id).unwrap();
+        let kf = map.add_keyframe(&measurement(frame), Isometry3::translation(0.1, 0.0, 0.0));
+        for i in 0..3 {
+            map.add_point(kf, i, Vector3::new(i as f64, 0.0, 2.0), 1.2, 8);
+        }
+        id
+    }
+
+    #[test]
+    fn ids_are_unique_across_maps_and_merges() {
+        let mut atlas = Atlas::new();
+        let a = small_map(&mut atlas, 0);
+        let b = small_map(&mut atlas, 1);
+        let ka: Vec<KfId> = atlas.maps[&a].keyframes.keys().copied().collect();
+        let kb: Vec<KfId> = atlas.maps[&b].keyframes.keys().copied().collect();
+        assert!(ka.iter().all(|k| !kb.contains(k)), "{ka:?} {kb:?}");
+        let pa: Vec<PointId> = atlas.maps[&a].points.keys().copied().collect();
+        let pb: Vec<PointId> = atlas.maps[&b].points.keys().copied().collect();
+        assert!(pa.iter().all(|p| !pb.contains(p)));
+        atlas.merge(a, b, &Sim3::identity()).unwrap();
+        assert_eq!(atlas.maps.len(), 1);
+        assert_eq!(atlas.maps[&a].keyframes.len(), 2);
+        assert_eq!(atlas.maps[&a].points.len(), 6);
+        atlas.activate(a);
+        let m = atlas.maps.get_mut(&a).unwrap();
+        let k = m.add_keyframe(&measurement(2), Isometry3::identity());
+        assert!(!ka.contains(&k) && !kb.contains(&k));
+    }
+
+    #[test]
+    fn merge_moves_geometry_into_the_target_frame() {
+        let mut atlas = Atlas::new();
+        let a = small_map(&mut atlas, 0);
+        let b = small_map(&mut atlas, 1);
+        let s = Sim3 {
+            rotation: Rotation3::from_euler_angles(0.1, -0.2, 0.3),
+            translation: Vector3::new(1.0, 2.0, 3.0),
+            scale: 1.0,
+        };
+        let kf_b = *atlas.maps[&b].keyframes.keys().next().unwrap();
+        let pt_b = *atlas.maps[&b].points.keys().next().unwrap();
+        let (c_before, x_before) = (
+            atlas.maps[&b].keyframes[&kf_b].center(),
+            atlas.maps[&b].points[&pt_b].position,
+        );
+        // The point's camera coordinates must not change (the camera saw it where it saw it).
+        let pc_before = atlas.maps[&b].keyframes[&kf_b].pose_cw * Point3::from(x_before);
+        atlas.merge(a, b, &s).unwrap();
+        let m = &atlas.maps[&a];
+        let (c, x) = (m.keyframes[&kf_b].center(), m.points[&pt_b].position);
+        assert!((c - s.transform_point(&c_before)).norm() < 1e-12);
+        assert!((x - s.transform_point(&x_before)).norm() < 1e-12);
+        let pc = m.keyframes[&kf_b].pose_cw * Point3::from(x);
+        assert!((pc - pc_before).norm() < 1e-12);
+    }
+
+    #[test]
+    fn rollback_restores_the_maps_and_undoes_later_pools_first() {
+        let mut atlas = Atlas::new();
+        let a = small_map(&mut atlas, 0);
+        let b = small_map(&mut atlas, 1);
+        let before_a = atlas.maps[&a].keyframes.len();
+        let p0 = atlas.begin_pool(
+            PoolKind::Merge {
+                into: a,
+                from: b,
+                alignment: (&Sim3::identity()).into(),
+            },
+            5,
+            5.0,
+        );
+        atlas.merge(a, b, &Sim3::identity()).unwrap();
+        atlas.activate(a);
+        atlas
+            .maps
+            .get_mut(&a)
+            .unwrap()
+            .add_keyframe(&measurement(6), Isometry3::identity());
+        let p1 = atlas.begin_pool(PoolKind::Loop { map: a }, 7, 7.0);
+        assert_eq!(atlas.last_undoable_pool(), Some(p1));
+        let undone = atlas.rollback(p0).unwrap();
+        assert_eq!(undone.len(), 2, "{undone:?}");
+        assert_eq!(undone[0].pool, p1);
+        assert_eq!(undone[1].pool, p0);
+        assert_eq!(undone[1].discarded_keyframes, 1);
+        assert_eq!(atlas.maps.len(), 2);
+        assert_eq!(atlas.maps[&a].keyframes.len(), before_a);
+        assert!(atlas.rollback(p0).is_err(), "a pool is undone once");
+        assert_eq!(atlas.last_undoable_pool(), None);
+        // New ids never reuse the discarded keyframe's.
+        atlas.activate(a);
+        let k = atlas
+            .maps
+            .get_mut(&a)
+            .unwrap()
+            .add_keyframe(&measurement(8), Isometry3::identity());
+        assert!(k >= 3, "id {k} reused");
+    }
+
+    #[test]
+    fn save_load_round_trip_and_bad_files() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("atlas.bin");
+        let mut atlas = Atlas::new();
+        let a = small_map(&mut atlas, 0);
+        let cam = AtlasCamera {
+            fx: 500.0,
+            fy: 500.0,
+            cx: 320.0,
+            cy: 240.0,
+            width: 640,
+            height: 480,
+        };
+        atlas.save(&path, cam.clone(), false).unwrap();
+        let back = Atlas::load(&path, &cam, false).unwrap();
+        assert_eq!(back.maps[&a].keyframes.len(), 1);
+        assert_eq!(back.maps[&a].points.len(), 3);
+        assert_eq!(back.loaded, vec![a]);
+        let msg = |r: Result<Atlas>| r.unwrap_err().to_string();
+        let other = AtlasCamera {
+            fx: 520.0,
+            ..cam.clone()
+        };
+        assert!(msg(Atlas::load(&path, &other, false)).contains("another camera"));
+        assert!(msg(Atlas::load(&path, &cam, true)).contains("RGB-D"));
+        let bytes = std::fs::read(&path).unwrap();
+        std::fs::write(&path, &bytes[..bytes.len() - 7]).unwrap();
+        assert!(msg(Atlas::load(&path, &cam, false)).contains("truncated"));
+        let mut flipped = bytes.clone();
+        let n = flipped.len();
+        flipped[n - 3] ^= 0x55;
+        std::fs::write(&path, &flipped).unwrap();
+        assert!(msg(Atlas::load(&path, &cam, false)).contains("checksum"));
+        std::fs::write(&path, b"hello").unwrap();
+        assert!(msg(Atlas::load(&path, &cam, false)).contains("not a homing atlas"));
+        let mut v2 = bytes.clone();
+        v2[MAGIC.len()] = 9;
+        std::fs::write(&path, &v2).unwrap();
+        assert!(msg(Atlas::load(&path, &cam, false)).contains("version 9"));
+        let e = msg(Atlas::load(&dir.path().join("missing.bin"), &cam, false));
+        assert!(e.contains("missing.bin"));
+    }
+}

@@ -1,0 +1,594 @@
+//! Loop validator (paper Table I): closure candidates → valid closures, reporting
+//! `able_to_localize`.
+//!
+//! Two stages, because one wrong closure can ruin a map:
+//! 1. **Geometry**, per candidate: the detector's descriptor matches between the query and a
+//!    keyframe become 3-D correspondences (query keypoints with depth ↔ the keyframe's map
+//!    points) for a 3-D–3-D RANSAC (Umeyama), or 2-D–3-D for OpenCV's PnP RANSAC when the query
+//!    has too little depth; the pose found is then refined against the keyframe's whole local
+//!    map (projection search + robust pose-only optimisation). Enough inliers, and a large
+//!    enough share of the projected points found, make the candidate *valid*.
+//! 2. **A pool** (the delayed decision of paper section III): a valid candidate implies an
+//!    alignment of the query's map onto the matched map (for a loop inside one map: the
+//!    correction of the drift). A closure is accepted only when `pool_size` valid candidates
+//!    from different query frames, within a window of recent frames, agree on that alignment.
+//!    Alignments of pools that were rolled back are remembered and refused.
+//!
+//! The validator reports; the state machine decides what an accepted pool leads to.
+
+use crate::aligner::{backproject, pnp_ransac, rigid_ransac};
+use crate::config::LoopClosingConfig;
+use crate::geometry::Sim3;
+use crate::map::{KfId, Map, PointId};
+use crate::optim::{
+    Observation, PoseObservation, PoseParams, octave_information, refine_pose, se3,
+};
+use crate::preprocess::{ImageGeometry, Measurement, hamming};
+use nalgebra::{Isometry3, Matrix6, Point3, Vector2, Vector3};
+use std::collections::{BTreeMap, BTreeSet, VecDeque};
+
+/// A candidate from the loop detector: the query frame's keypoint `q` matched keypoint `r` of
+/// keyframe `matched`.
+#[derive(Debug, Clone)]
+pub struct Candidate {
+    pub matched: KfId,
+    pub score: f64,
+    pub matches: Vec<(u32, u32)>,
+}
+
+/// Why a candidate was not valid.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Rejection {
+    TooFewMatches,
+    Geometry,
+    Refinement,
+    RolledBackAlignment,
+}
+
+impl Rejection {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::TooFewMatches => "rejected:too-few-matches",
+            Self::Geometry => "rejected:geometry",
+            Self::Refinement => "rejected:refinement",
+            Self::RolledBackAlignment => "rejected:rolled-back-alignment",
+        }
+    }
+}
+
+/// A geometrically valid candidate.
+#[derive(Debug, Clone)]
+pub struct Valid {
+    pub frame: usize,
+    pub t: f64,
+    /// Map of the query (where its pose `query_pose` lives) and of the match.
+    pub query_map: u32,
+    pub match_map: u32,
+    pub matched: KfId,
+    /// The query frame's pose in its own map, and the one found in the matched map.
+    pub query_pose: Isometry3<f64>,
+    pub pose_in_match: Isometry3<f64>,
+    /// Query keypoint → matched-map point, inliers of the refinement.
+    pub matches: Vec<Option<PointId>>,
+    pub n_inliers: usize,
+    /// Information of `pose_in_match` (Gauss–Newton, scaled by the residual variance).
+    pub information: Matrix6<f64>,
+}
+
+impl Valid {
+    /// The alignment this candidate implies: query-map world → matched-map world.
+    pub fn alignment(&self) -> Isometry3<f64> {
+        self.pose_in_match.inverse() * self.query_pose
+    }
+}
+
+/// Outcome of validating one candidate.
+#[derive(Debug, Clone)]
+pub enum Verdict {
+    Valid(Box<Valid>),
+    Rejected {
+        matched: KfId,
+        reason: Rejection,
+        inliers: usize,
+        /// Best pose found before the rejection, if any (for the closure log).
+        pose_in_match: Option<Isometry3<f64>>,
+    },
+}
+
+/// What the query side brings to validation.
+pub struct Query<'a> {
+    pub m: &'a Measurement,
+    pub map: u32,
+    /// Pose of the query frame in its own map (identity when it has none yet).
+    pub pose: Isometry3<f64>,
+}
+
+/// Geometric validation of one candidate against keyframe `c.matched` of `map`.
+pub fn validate(
+    cfg: &LoopClosingConfig,
+    geo: &ImageGeometry,
+    q: &Query,
+    map: &Map,
+    c: &Candidate,
+) -> Verdict {
+    let reject = |reason, inliers, pose| Verdict::Rejected {
+        matched: c.matched,
+        reason,
+        inliers,
+        pose_in_match: pose,
+    };
+    let Some(kf) = map.keyframes.get(&c.matched) else {
+        return reject(Rejection::TooFewMatches, 0, None);
+    };
+    // Correspondences: query keypoint ↔ the keyframe keypoint's map point.
+    let mut pairs: Vec<(usize, PointId)> = Vec::new();
+    let mut seen = BTreeSet::new();
+    for &(qi, ri) in &c.matches {
+        let (qi, ri) = (qi as usize, ri as usize);
+        let Some(Some(p)) = kf.points.get(ri) else {
+            continue;
+        };
+        if qi < q.m.len() && map.points.contains_key(p) && seen.insert(*p) {
+            pairs.push((qi, *p));
+        }
+    }
+    if pairs.len() < cfg.min_matches as usize {
+        return reject(Rejection::TooFewMatches, pairs.len(), None);
+    }
+    let Some(initial) = ransac_pose(cfg, geo, q.m, map, &pairs) else {
+        return reject(Rejection::Geometry, 0, None);
+    };
+    // Refinement against the matched keyframe's local map.
+    let mut local: Vec<KfId> = vec![c.matched];
+    local.extend(kf.best_covisible(10));
+    let mut matches: Vec<Option<PointId>> = vec![None; q.m.len()];
+    for &(qi, p) in &pairs {
+        matches[qi] = Some(p);
+    }
+    let (mut pose, mut inliers) = refine(geo, q.m, map, &initial, &matches);
+    for radius in [8.0, 4.0] {
+        let mut m2: Vec<Option<PointId>> = vec![None; q.m.len()];
+        for (i, ok) in inliers.iter().enumerate() {
+            if *ok {
+                m2[i] = matches[i];
+            }
+        }
+        let found = search_local_map(geo, q.m, map, &local, &pose, radius, &mut m2);
+        let (p2, inl2) = refine(geo, q.m, map, &pose, &m2);
+        tracing::trace!(
+            "validate kf {}: {} projected matches, {} inliers",
+            c.matched,
+            found,
+            inl2.iter().filter(|b| **b).count()
+        );
+        pose = p2;
+        inliers = inl2;
+        matches = m2;
+    }
+    let n = inliers.iter().filter(|b| **b).count();
+    let matched_total = matches.iter().flatten().count().max(1);
+    if n < cfg.min_inliers as usize || (n as f64) < cfg.min_inlier_ratio * matched_total as f64 {
+        return reject(Rejection::Refinement, n, Some(pose));
+    }
+    let inlier_matches: Vec<Option<PointId>> = matches
+        .iter()
+        .zip(&inliers)
+        .map(|(m, ok)| if *ok { *m } else { None })
+        .collect();
+    let information = pose_information(geo, q.m, map, &pose, &inlier_matches);
+    Verdict::Valid(Box::new(Valid {
+        frame: q.m.frame,
+        t: q.m.t,
+        query_map: q.map,
+        match_map: map.id,
+        matched: c.matched,
+        query_pose: q.pose,
+        pose_in_match: pose,
+        matches: inlier_matches,
+        n_inliers: n,
+        information,
+    }))
+}
+
+/// Initial pose of the query in the matched map: 3-D–3-D RANSAC when the query has depth
+/// for enough of the pairs, PnP RANSAC otherwise.
+fn ransac_pose(
+    cfg: &LoopClosingConfig,
+    geo: &ImageGeometry,
+    m: &Measurement,
+    map: &Map,
+    pairs: &[(usize, PointId)],
+) -> Option<Isometry3<f64>> {
+    let with_depth: Vec<&(usize, PointId)> =
+        pairs.iter().filter(|(qi, _)| m.depth[*qi] > 0.0).collect();
+    if with_depth.len() >= cfg.min_matches as usize {
+        let src: Vec<Vector3<f64>> = with_depth
+            .iter()
+            .map(|(qi, _)| backproject(&geo.intr, &m.keypoints[*qi].un, m.depth[*qi] as f64))
+            .collect();
+        let dst: Vec<Vector3<f64>> = with_depth
+            .iter()
+            .map(|(_, p)| map.points[p].position)
+            .collect();
+        // Threshold grows with depth like the sensor's noise (σ ≈ 1.4 mm · z²) plus keypoint
+        // error; 5 cm at 2 m is generous enough for real data and far below aliasing errors.
+        let a = rigid_ransac(
+            &src,
+            &dst,
+            0.05,
+            (cfg.min_inliers as usize / 2).max(6),
+            300,
+            17,
+        )?;
+        // `a.pose` maps query-camera points into the matched map's world: T_wc.
+        return Some(a.pose.inverse());
+    }
+    let pts: Vec<Vector3<f64>> = pairs.iter().map(|(_, p)| map.points[p].position).collect();
+    let uv: Vec<Vector2<f64>> = pairs.iter().map(|(qi, _)| m.keypoints[*qi].un).collect();
+    pnp_ransac(
+        &pts,
+        &uv,
+        &geo.intr,
+        4.0,
+        (cfg.min_inliers as usize / 2).max(6),
+    )
+    .ok()
+    .flatten()
+    .map(|a| a.pose)
+}
+
+fn observations(
+    m: &Measurement,
+    map: &Map,
+    matches: &[Option<PointId>],
+) -> (Vec<usize>, Vec<PoseObservation>) {
+    let idx: Vec<usize> = (0..m.len())
+        .filter(|&i| matches[i].is_some_and(|p| map.points.contains_key(&p)))
+        .collect();
+    let obs = idx
+        .iter()
+        .map(|&i| {
+            let kp = &m.keypoints[i];
+            let d = m.depth[i] as f64;
+            PoseObservation {
+                point_w: map.points[&matches[i].expect("filtered")].position,
+                obs: if d > 0.0 {
+                    Observation::Rgbd {
+                        uv: kp.un,
+                        depth: d,
+                    }
+                } else {
+                    Observation::Mono { uv: kp.un }
+                },
+                info: octave_information(kp.octave as u32),
+                shutter: Isometry3::identity(),
+            }
+        })
+        .collect();
+    (idx, obs)
+}
+
+/// Robust pose-only refinement; returns the pose and an inlier flag per query keypoint.
+fn refine(
+    geo: &ImageGeometry,
+    m: &Measurement,
+    map: &Map,
+    init: &Isometry3<f64>,
+    matches: &[Option<PointId>],
+) -> (Isometry3<f64>, Vec<bool>) {
+    let (idx, obs) = observations(m, map, matches);
+    let r = refine_pose(init, &obs, &geo.intr, &PoseParams::default());
+    let mut inl = vec![false; m.len()];
+    for (k, &i) in idx.iter().enumerate() {
+        inl[i] = r.inliers[k];
+    }
+    (r.pose, inl)
+}
+
+/// Projects the points of keyframes `local` with `pose` and matches them to free query
+/// keypoints near their projection (ORB distance ≤ 50 and Lowe's ratio). Returns how many
+/// matches were added.
+fn search_local_map(
+    geo: &ImageGeometry,
+    m: &Measurement,
+    map: &Map,
+    local: &[KfId],
+    pose: &Isometry3<f64>,
+    radius: f64,
+    matches: &mut [Option<PointId>],
+) -> usize {
+    let mut cands: BTreeSet<PointId> = BTreeSet::new();
+    for k in local {
+        if let Some(kf) = map.keyframes.get(k) {
+            cands.extend(kf.points.iter().flatten().copied());
+        }
+    }
+    let used: BTreeSet<PointId> = matches.iter().flatten().copied().collect();
+    let mut best: Vec<u32> = vec![u32::MAX; m.len()];
+    let mut added = 0;
+    for pid in cands {
+        if used.contains(&pid) {
+            continue;
+        }
+        let Some(p) = map.points.get(&pid) else {
+            continue;
+        };
+        let pc = pose * Point3::from(p.position);
+        let Some(uv) = geo.project_in_image(&pc.coords) else {
+            continue;
+        };
+        let dist = pc.coords.norm();
+        if dist < 0.8 * p.min_distance || dist > 1.2 * p.max_distance {
+            continue;
+        }
+        let level = geo.predicted_level(p.max_distance, dist);
+        let r = radius * geo.scales[level];
+        let lo = level.saturating_sub(1) as u8;
+        let hi = (level + 1).min(geo.n_levels as usize - 1) as u8;
+        let (mut b1, mut b2, mut bi) = (u32::MAX, u32::MAX, usize::MAX);
+        for i in m.grid.in_area(&m.keypoints, uv.x, uv.y, r, lo, hi) {
+            if matches[i].is_some() && best[i] == u32::MAX {
+                continue;
+            }
+            let h = hamming(&p.descriptor, &m.descriptors[i]);
+            if h < b1 {
+                (b2, b1, bi) = (b1, h, i);
+            } else if h < b2 {
+                b2 = h;
+            }
+        }
+        if bi == usize::MAX || b1 > 50 || (b2 != u32::MAX && b1 as f64 > 0.8 * b2 as f64) {
+            continue;
+        }
+        if b1 < best[bi] {
+            if best[bi] == u32::MAX {
+                added += 1;
+            }
+            best[bi] = b1;
+            matches[bi] = Some(pid);
+        }
+    }
+    added
+}
+
+/// Gauss–Newton information of the refined pose from its inlier observations, scaled by the
+/// measured residual variance (a χ² per degree of freedom above 1 means the keypoint noise is
+/// larger than the pyramid model says).
+pub fn pose_information(
+    geo: &ImageGeometry,
+    m: &Measurement,
+    map: &Map,
+    pose: &Isometry3<f64>,
+    matches: &[Option<PointId>],
+) -> Matrix6<f64> {
+    let (_, obs) = observations(m, map, matches);
+    let mut h = Matrix6::zeros();
+    let (mut chi2, mut dof) = (0.0, 0usize);
+    for o in &obs {
+        let Some(lin) = o.obs.linearize(&geo.intr, pose, &o.point_w) else {
+            continue;
+        };
+        h += lin.jac_pose.transpose() * lin.jac_pose * o.info;
+        chi2 += o.info * lin.residual.norm_squared();
+        dof += o.obs.dim();
+    }
+    let var = if dof > 6 {
+        (chi2 / (dof - 6) as f64).max(1.0)
+    } else {
+        1.0
+    };
+    h / var
+}
+
+/// A closure pool that reached consensus.
+#[derive(Debug, Clone)]
+pub struct Accepted {
+    pub query_map: u32,
+    pub match_map: u32,
+    /// Query-map world → matched-map world (for a loop inside one map: the drift correction).
+    pub alignment: Isometry3<f64>,
+    /// The agreeing candidates, oldest first.
+    pub members: Vec<Valid>,
+}
+
+/// The delayed decision over valid candidates.
+#[derive(Debug, Clone, Default)]
+pub struct Pool {
+    recent: VecDeque<Valid>,
+    /// Alignments of pools that were rolled back, per (query map, match map).
+    refused: Vec<(u32, u32, Isometry3<f64>)>,
+}
+
+/// Tolerances of "the same alignment".
+pub struct Agreement {
+    pub max_translation_m: f64,
+    pub max_rotation_deg: f64,
+}
+
+impl Agreement {
+    pub fn from_config(cfg: &LoopClosingConfig) -> Self {
+        Self {
+            max_translation_m: cfg.pool_max_translation_m,
+            max_rotation_deg: cfg.pool_max_rotation_deg,
+        }
+    }
+
+    pub fn agree(&self, a: &Isometry3<f64>, b: &Isometry3<f64>) -> bool {
+        let d = a.inverse() * b;
+        d.translation.vector.norm() <= self.max_translation_m
+            && d.rotation.angle().to_degrees() <= self.max_rotation_deg
+    }
+}
+
+impl Pool {
+    /// Forgets pending candidates (e.g. when the query map changes).
+    pub fn clear(&mut self) {
+        self.recent.clear();
+    }
+
+    pub fn pending(&self) -> usize {
+        self.recent.len()
+    }
+
+    /// Whether `v` agrees with an alignment that was rolled back before.
+    pub fn is_refused(&self, v: &Valid, agreement: &Agreement) -> bool {
+        let a = v.alignment();
+        self.refused
+            .iter()
+            .any(|(qm, mm, r)| *qm == v.query_map && *mm == v.match_map && agreement.agree(r, &a))
+    }
+
+    /// Remembers a rolled-back alignment so that the same wrong closure is not accepted again.
+    pub fn refuse(&mut self, query_map: u32, match_map: u32, alignment: Isometry3<f64>) {
+        self.refused.push((query_map, match_map, alignment));
+    }
+
+    /// Adds a valid candidate of frame `frame`; candidates older than `window` frames leave
+    /// the pool. Returns the accepted pool when `pool_size` candidates of different frames
+    /// agree with the newest one.
+    pub fn offer(
+        &mut self,
+        v: Valid,
+        window: usize,
+        pool_size: usize,
+        agreement: &Agreement,
+    ) -> Option<Accepted> {
+        let frame = v.frame;
+        self.recent
+            .retain(|o| frame.saturating_sub(o.frame) <= window && o.query_map == v.query_map);
+        let a = v.alignment();
+        self.recent.push_back(v);
+        let agreeing: Vec<&Valid> = self
+            .recent
+            .iter()
+            .filter(|o| o.match_map == self.recent.back().expect("just pushed").match_map)
+            .filter(|o| agreement.agree(&o.alignment(), &a))
+            .collect();
+        let frames: BTreeSet<usize> = agreeing.iter().map(|o| o.frame).collect();
+        if frames.len() < pool_size {
+            return None;
+        }
+        // One member per frame (the one with most inliers), oldest first.
+        let mut per_frame: BTreeMap<usize, Valid> = BTreeMap::new();
+        for o in agreeing {
+            let keep = per_frame
+                .get(&o.frame)
+                .is_none_or(|e| o.n_inliers > e.n_inliers);
+            if keep {
+                per_frame.insert(o.frame, o.clone());
+            }
+        }
+        let members: Vec<Valid> = per_frame.into_values().collect();
+        let last = members.last().expect("pool_size >= 1");
+        let accepted = Accepted {
+            query_map: last.query_map,
+            match_map: last.match_map,
+            alignment: last.alignment(),
+            members,
+        };
+        self.recent.clear();
+        Some(accepted)
+    }
+}
+
+/// The rigid alignment as the atlas's similarity (scale 1 with depth).
+pub fn as_sim3(a: &Isometry3<f64>) -> Sim3 {
+    Sim3 {
+        rotation: a.rotation.to_rotation_matrix(),
+        translation: a.translation.vector,
+        scale: 1.0,
+    }
+}
+
+/// Relative pose between two poses as the pose graph measures it: pose of `b` in the frame
+/// of `a`, both world-to-camera.
+pub fn relative(a: &Isometry3<f64>, b: &Isometry3<f64>) -> Isometry3<f64> {
+    a * b.inverse()
+}
+
+/// The information of a relative pose measurement `a·b⁻¹` when only `b` is uncertain with
+/// information `info_b` (left perturbation): `a·(exp(δ)b)⁻¹ = a·b⁻¹·exp(−δ)` — the right
+/// perturbation of the relative pose, so the information moves by the adjoint of `a·b⁻¹`.
+pub fn relative_information(rel: &Isometry3<f64>, info_b: &Matrix6<f64>) -> Matrix6<f64> {
+    let ad = se3::adjoint(rel);
+    match ad.try_inverse() {
+        Some(inv) => inv.transpose() * info_b * inv,
+        None => *info_b,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Vector3;
+
+    fn valid(frame: usize, alignment: Isometry3<f64>) -> Valid {
+        // query_pose = identity → alignment = pose_in_match⁻¹.
+        Valid {
+            frame,
+            t: frame as f64,
+            query_map: 1,
+            match_map: 0,
+            matched: 3,
+            query_pose: Isometry3::identity(),
+            pose_in_match: alignment.inverse(),
+            matches: vec![],
+            n_inliers: 50,
+            information: Matrix6::identity(),
+        }
+    }
+
+    fn agreement() -> Agreement {
+        Agreement {
+            max_translation_m: 0.1,
+            max_rotation_deg: 3.0,
+        }
+    }
+
+    #[test]
+    fn pool_needs_agreeing_candidates_of_distinct_frames() {
+        let mut pool = Pool::default();
+        let a = Isometry3::new(Vector3::new(1.0, 2.0, 0.0), Vector3::new(0.0, 0.0, 0.5));
+        let b = Isometry3::new(Vector3::new(-3.0, 0.0, 0.0), Vector3::new(0.0, 0.0, -1.0));
+        assert!(pool.offer(valid(10, a), 30, 3, &agreement()).is_none());
+        assert!(
+            pool.offer(valid(10, a), 30, 3, &agreement()).is_none(),
+            "same frame"
+        );
+        assert!(
+            pool.offer(valid(11, b), 30, 3, &agreement()).is_none(),
+            "disagrees"
+        );
+        let acc = pool.offer(valid(12, a), 30, 3, &agreement());
+        assert!(acc.is_none(), "only two frames agree");
+        let acc = pool
+            .offer(valid(13, a), 30, 3, &agreement())
+            .expect("three agree");
+        assert_eq!(acc.members.len(), 3);
+        assert!(agreement().agree(&acc.alignment, &a));
+        assert_eq!(pool.pending(), 0);
+    }
+
+    #[test]
+    fn old_candidates_leave_the_window_and_refused_alignments_stay_refused() {
+        let mut pool = Pool::default();
+        let a = Isometry3::new(Vector3::new(1.0, 0.0, 0.0), Vector3::zeros());
+        assert!(pool.offer(valid(0, a), 5, 2, &agreement()).is_none());
+        assert!(
+            pool.offer(valid(20, a), 5, 2, &agreement()).is_none(),
+            "frame 0 expired"
+        );
+        pool.refuse(1, 0, a);
+        let near = Isometry3::new(Vector3::new(1.05, 0.0, 0.0), Vector3::zeros());
+        assert!(pool.is_refused(&valid(21, near), &agreement()));
+        let far = Isometry3::new(Vector3::new(3.0, 0.0, 0.0), Vector3::zeros());
+        assert!(!pool.is_refused(&valid(22, far), &agreement()));
+    }
+
+    #[test]
+    fn relative_information_is_invariant_for_identity() {
+        let info = Matrix6::from_diagonal(&nalgebra::Vector6::new(1.0, 2.0, 3.0, 4.0, 5.0, 6.0));
+        let r = relative_information(&Isometry3::identity(), &info);
+        assert!((r - info).norm() < 1e-12);
+    }
+}
