@@ -13,6 +13,7 @@ pub mod control;
 pub mod eval;
 pub mod geometry;
 pub mod initializer;
+pub mod loop_detector;
 pub mod map;
 pub mod map_merger;
 pub mod optim;
