@@ -165,6 +165,17 @@ pub struct LoopClosingConfig {
     /// Keyframes this recent are not closure candidates.
     pub temporal_window: u32,
     pub min_matches: u32,
+    /// Lowest loop-detector score (voting query descriptors / query descriptors).
+    pub min_score: f64,
+    /// Ratio test of the loop detector: a match is kept only when its distance is below this
+    /// times the second-best distance in the same keyframe.
+    pub ambiguity_ratio: f64,
+    /// Self-similar query descriptors (repetitive texture, generic corners) do not vote.
+    pub self_similarity_filter: bool,
+    /// ... those with more near-duplicates than this in their own keyframe ...
+    pub self_similarity_max_own_neighbours: u32,
+    /// ... or that match more distinct keyframes than this.
+    pub self_similarity_max_images: u32,
     pub min_inliers: u32,
     pub min_inlier_ratio: f64,
     /// Candidates (of different frames) that must agree before a closure pool is accepted.
@@ -187,6 +198,11 @@ impl Default for LoopClosingConfig {
             hbst_max_split_imbalance: 0.45,
             temporal_window: 20,
             min_matches: 40,
+            min_score: 0.05,
+            ambiguity_ratio: 0.9,
+            self_similarity_filter: false,
+            self_similarity_max_own_neighbours: 2,
+            self_similarity_max_images: 20,
             min_inliers: 30,
             min_inlier_ratio: 0.3,
             pool_size: 3,
@@ -442,6 +458,20 @@ impl Config {
             "loop_closing.min_matches",
             l.min_matches as f64,
             3.0,
+            100000.0,
+        );
+        c.range("loop_closing.min_score", l.min_score, 0.0, 1.0);
+        c.range("loop_closing.ambiguity_ratio", l.ambiguity_ratio, 0.1, 1.0);
+        c.range(
+            "loop_closing.self_similarity_max_own_neighbours",
+            l.self_similarity_max_own_neighbours as f64,
+            0.0,
+            100000.0,
+        );
+        c.range(
+            "loop_closing.self_similarity_max_images",
+            l.self_similarity_max_images as f64,
+            1.0,
             100000.0,
         );
         c.range(

@@ -14,6 +14,7 @@ pub mod control;
 pub mod eval;
 pub mod geometry;
 pub mod initializer;
+pub mod loop_detector;
 pub mod loop_validator;
 pub mod map;
 pub mod map_merger;
