@@ -39,8 +39,11 @@ pub struct ClosureEdge {
 /// What a pool did.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub enum PoolKind {
-    /// A loop closure inside one map.
-    Loop { map: MapId },
+    /// A loop closure inside one map; `correction` is the drift correction it implied.
+    Loop {
+        map: MapId,
+        correction: SimilarityRecord,
+    },
     /// A relocalization that merged map `from` into map `into` with `alignment` (from-world →
     /// into-world; scale 1 with depth).
     Merge {
@@ -98,7 +101,7 @@ impl PoolRecord {
     /// Maps this pool touched.
     pub fn maps(&self) -> Vec<MapId> {
         match &self.kind {
-            PoolKind::Loop { map } => vec![*map],
+            PoolKind::Loop { map, .. } => vec![*map],
             PoolKind::Merge { into, from, .. } => vec![*into, *from],
         }
     }
@@ -603,7 +606,14 @@ mod tests {
             .get_mut(&a)
             .unwrap()
             .add_keyframe(&measurement(6), Isometry3::identity());
-        let p1 = atlas.begin_pool(PoolKind::Loop { map: a }, 7, 7.0);
+        let p1 = atlas.begin_pool(
+            PoolKind::Loop {
+                map: a,
+                correction: (&Sim3::identity()).into(),
+            },
+            7,
+            7.0,
+        );
         assert_eq!(atlas.last_undoable_pool(), Some(p1));
         let undone = atlas.rollback(p0).unwrap();
         assert_eq!(undone.len(), 2, "{undone:?}");

@@ -180,8 +180,10 @@ pub struct LoopClosingConfig {
     pub min_inlier_ratio: f64,
     /// Candidates (of different frames) that must agree before a closure pool is accepted.
     pub pool_size: u32,
-    /// Frames a valid candidate waits in the pool for others to agree with it.
+    /// Frames a valid relocalization candidate waits in the pool for others to agree with it.
     pub pool_window_frames: u32,
+    /// The same for loop candidates, which come one per keyframe.
+    pub loop_pool_window_frames: u32,
     /// Two candidates agree when their implied alignments differ by at most this much.
     pub pool_max_translation_m: f64,
     pub pool_max_rotation_deg: f64,
@@ -207,6 +209,7 @@ impl Default for LoopClosingConfig {
             min_inlier_ratio: 0.3,
             pool_size: 3,
             pool_window_frames: 30,
+            loop_pool_window_frames: 300,
             pool_max_translation_m: 0.1,
             pool_max_rotation_deg: 3.0,
             max_normalized_chi2: 3.0,
@@ -248,6 +251,11 @@ pub struct ControllerConfig {
     pub min_expectation_ratio: f64,
     /// Consecutive failing frames before Localized declares the map corrupted.
     pub corrupted_after_frames: u32,
+    /// The expectation check needs at least this many predicted-visible points to judge.
+    pub min_expected_points: u32,
+    /// Idle re-tracks in the current map when the last tracked frame is at most this old
+    /// (seconds); after a longer loss a new map is started.
+    pub reacquire_gap_s: f64,
 }
 
 impl Default for ControllerConfig {
@@ -256,6 +264,8 @@ impl Default for ControllerConfig {
             kind: ControllerKind::Ours,
             min_expectation_ratio: 0.3,
             corrupted_after_frames: 5,
+            min_expected_points: 30,
+            reacquire_gap_s: 0.5,
         }
     }
 }
@@ -494,6 +504,12 @@ impl Config {
             100000.0,
         );
         c.range(
+            "loop_closing.loop_pool_window_frames",
+            l.loop_pool_window_frames as f64,
+            1.0,
+            100000.0,
+        );
+        c.range(
             "loop_closing.pool_max_translation_m",
             l.pool_max_translation_m,
             0.0,
@@ -519,6 +535,13 @@ impl Config {
             1.0,
             100000.0,
         );
+        c.range(
+            "controller.min_expected_points",
+            k.min_expected_points as f64,
+            1.0,
+            100000.0,
+        );
+        c.range("controller.reacquire_gap_s", k.reacquire_gap_s, 0.0, 3600.0);
         c.first.map_or(Ok(()), Err)
     }
 }

@@ -18,16 +18,16 @@ pub struct Initializer {
 }
 
 impl Initializer {
-    /// A new map with the frame as its first keyframe, or `None` when the frame has fewer than
-    /// `min_points` keypoints with depth (too dark, too close, no depth sensor).
-    pub fn try_initialize(&self, m: &Measurement, map_id: u32) -> Option<(Map, KfId)> {
+    /// Fills `map` (an empty map from [`crate::atlas::Atlas::blank_map`]) with the frame as its
+    /// first keyframe, or `None` when the frame has fewer than `min_points` keypoints with depth
+    /// (too dark, too close, no depth sensor).
+    pub fn try_initialize(&self, m: &Measurement, mut map: Map) -> Option<(Map, KfId)> {
         let usable: Vec<usize> = (0..m.len())
             .filter(|&i| m.depth[i] > 0.0 && (m.depth[i] as f64) <= self.max_depth)
             .collect();
         if usable.len() < self.min_points {
             return None;
         }
-        let mut map = Map::new(map_id);
         let kf = map.add_keyframe(m, Isometry3::identity());
         for i in usable {
             let p = backproject(&self.intr, &m.keypoints[i].un, m.depth[i] as f64);

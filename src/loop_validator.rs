@@ -27,14 +27,7 @@ use crate::preprocess::{ImageGeometry, Measurement, hamming};
 use nalgebra::{Isometry3, Matrix6, Point3, Vector2, Vector3};
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 
-/// A candidate from the loop detector: the query frame's keypoint `q` matched keypoint `r` of
-/// keyframe `matched`.
-#[derive(Debug, Clone)]
-pub struct Candidate {
-    pub matched: KfId,
-    pub score: f64,
-    pub matches: Vec<(u32, u32)>,
-}
+pub use crate::loop_detector::Candidate;
 
 /// Why a candidate was not valid.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -65,6 +58,8 @@ pub struct Valid {
     pub query_map: u32,
     pub match_map: u32,
     pub matched: KfId,
+    /// The query's keyframe, when the query is a keyframe (loop closing in Mapping).
+    pub query_kf: Option<KfId>,
     /// The query frame's pose in its own map, and the one found in the matched map.
     pub query_pose: Isometry3<f64>,
     pub pose_in_match: Isometry3<f64>,
@@ -101,6 +96,8 @@ pub struct Query<'a> {
     pub map: u32,
     /// Pose of the query frame in its own map (identity when it has none yet).
     pub pose: Isometry3<f64>,
+    /// The query's keyframe, when it is one.
+    pub kf: Option<KfId>,
 }
 
 /// Geometric validation of one candidate against keyframe `c.matched` of `map`.
@@ -111,13 +108,14 @@ pub fn validate(
     map: &Map,
     c: &Candidate,
 ) -> Verdict {
+    let matched = c.image as KfId;
     let reject = |reason, inliers, pose| Verdict::Rejected {
-        matched: c.matched,
+        matched,
         reason,
         inliers,
         pose_in_match: pose,
     };
-    let Some(kf) = map.keyframes.get(&c.matched) else {
+    let Some(kf) = map.keyframes.get(&matched) else {
         return reject(Rejection::TooFewMatches, 0, None);
     };
     // Correspondences: query keypoint ↔ the keyframe keypoint's map point.
@@ -139,7 +137,7 @@ pub fn validate(
         return reject(Rejection::Geometry, 0, None);
     };
     // Refinement against the matched keyframe's local map.
-    let mut local: Vec<KfId> = vec![c.matched];
+    let mut local: Vec<KfId> = vec![matched];
     local.extend(kf.best_covisible(10));
     let mut matches: Vec<Option<PointId>> = vec![None; q.m.len()];
     for &(qi, p) in &pairs {
@@ -156,8 +154,7 @@ pub fn validate(
         let found = search_local_map(geo, q.m, map, &local, &pose, radius, &mut m2);
         let (p2, inl2) = refine(geo, q.m, map, &pose, &m2);
         tracing::trace!(
-            "validate kf {}: {} projected matches, {} inliers",
-            c.matched,
+            "validate kf {matched}: {} projected matches, {} inliers",
             found,
             inl2.iter().filter(|b| **b).count()
         );
@@ -181,7 +178,8 @@ pub fn validate(
         t: q.m.t,
         query_map: q.map,
         match_map: map.id,
-        matched: c.matched,
+        matched,
+        query_kf: q.kf,
         query_pose: q.pose,
         pose_in_match: pose,
         matches: inlier_matches,
@@ -530,6 +528,7 @@ mod tests {
             query_map: 1,
             match_map: 0,
             matched: 3,
+            query_kf: None,
             query_pose: Isometry3::identity(),
             pose_in_match: alignment.inverse(),
             matches: vec![],

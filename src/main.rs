@@ -2,7 +2,7 @@
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand};
-use homing::config::Config;
+use homing::config::{Config, ControllerKind};
 use homing::eval::{self, Alignment, RpeUnit};
 use homing::io::perturb::{DropSpec, FaultRate, FaultSpec, PerturbationSpec};
 use homing::io::tum::read_trajectory;
@@ -104,6 +104,19 @@ struct RunArgs {
     /// Default: deterministic, byte-identical outputs for the same input.
     #[arg(long)]
     threaded: bool,
+    /// The modal controller: ours (the paper's state machine) or a peer's (orbslam2, proslam,
+    /// ldso) on the same components. Default: the config's `controller.kind`.
+    #[arg(long, value_enum)]
+    controller: Option<ControllerKind>,
+    /// Disable loop closing (detection, validation, global optimisation).
+    #[arg(long)]
+    no_loop_closing: bool,
+    /// Init loads this saved atlas from an earlier session (multi-session).
+    #[arg(long, value_name = "FILE")]
+    load_map: Option<PathBuf>,
+    /// Final saves the atlas to this file.
+    #[arg(long, value_name = "FILE")]
+    save_map: Option<PathBuf>,
 }
 
 #[derive(Args)]
@@ -189,6 +202,10 @@ fn cmd_run(a: RunArgs) -> Result<()> {
         eval: a.eval,
         command: std::env::args().collect(),
         threaded: a.threaded,
+        controller: a.controller,
+        no_loop_closing: a.no_loop_closing,
+        load_map: a.load_map,
+        save_map: a.save_map,
     };
     let s = run(&opts)?;
     println!(

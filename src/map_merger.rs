@@ -3,6 +3,7 @@
 //! covisible keyframes, culling, and local bundle adjustment (optim::local_ba, faer).
 
 use crate::aligner::backproject;
+use crate::atlas::Atlas;
 use crate::config::MappingConfig;
 use crate::map::{KfId, Map, PointId};
 use crate::optim::{
@@ -143,7 +144,7 @@ impl MapMerger {
 
     /// Applies the local BA results that are ready (threaded mode; nothing otherwise). With
     /// `wait`, blocks until every submitted job is back. Returns the solver times.
-    pub fn poll(&mut self, maps: &mut [Map], wait: bool) -> Vec<f64> {
+    pub fn poll(&mut self, atlas: &mut Atlas, wait: bool) -> Vec<f64> {
         let mut times = std::mem::take(&mut self.waited_ms);
         let Some(w) = self.worker.as_mut() else {
             return times;
@@ -157,7 +158,25 @@ impl MapMerger {
             let Some(done) = done else { break };
             w.pending -= 1;
             times.push(done.ms);
-            if let Some(map) = maps.iter_mut().find(|m| m.id == done.job.map) {
+            if let Some(map) = atlas.maps.get_mut(&done.job.map) {
+                apply_ba(map, &self.geo, &done);
+            }
+        }
+        times
+    }
+
+    /// Waits for every pending job and applies those of `map` (others belong to maps the
+    /// atlas changed meanwhile and are dropped).
+    fn wait_for(&mut self, map: &mut Map) -> Vec<f64> {
+        let mut times = Vec::new();
+        let Some(w) = self.worker.as_mut() else {
+            return times;
+        };
+        while w.pending > 0 {
+            let Ok(done) = w.done.recv() else { break };
+            w.pending -= 1;
+            times.push(done.ms);
+            if done.job.map == map.id {
                 apply_ba(map, &self.geo, &done);
             }
         }
@@ -188,7 +207,15 @@ impl MapMerger {
     /// ORB-SLAM's RGB-D keyframe decision: insert when the frame tracks clearly fewer points than
     /// its reference keyframe has well-observed points (observation weight as in culling), or when few close points are tracked while many could be created,
     /// or when too many frames passed. Always requires some tracked points (> 15).
-    pub fn need_keyframe(&self, map: &Map, m: &Measurement, track: &TrackResult) -> bool {
+    /// With `with_interval` false only the coverage criteria count (Localized uses that to
+    /// tell when the camera leaves the mapped area).
+    pub fn need_keyframe(
+        &self,
+        map: &Map,
+        m: &Measurement,
+        track: &TrackResult,
+        with_interval: bool,
+    ) -> bool {
         let Some(ref_kf) = track.reference_kf.and_then(|k| map.keyframes.get(&k)) else {
             return false;
         };
@@ -216,9 +243,12 @@ impl MapMerger {
         } else {
             self.cfg.keyframe_tracked_ratio
         };
-        let since = self
-            .last_kf_frame
-            .map_or(usize::MAX, |f| m.frame.saturating_sub(f));
+        let since = if with_interval {
+            self.last_kf_frame
+                .map_or(usize::MAX, |f| m.frame.saturating_sub(f))
+        } else {
+            0
+        };
         let weak = (track.n_inliers as f64) < ratio * ref_matches as f64 || need_close;
         (since >= self.cfg.keyframe_max_interval as usize || weak) && track.n_inliers > 15
     }
@@ -395,7 +425,7 @@ impl MapMerger {
                 // One job at a time: a still-running BA is finished and applied first, so that
                 // the next one starts from its result (ORB-SLAM instead aborts it).
                 if w.pending > 0 {
-                    let times = self.poll(std::slice::from_mut(map), true);
+                    let times = self.wait_for(map);
                     self.waited_ms.extend(times);
                 }
                 let w = self.worker.as_mut().expect("threaded");

@@ -38,9 +38,12 @@ pub struct StateRow {
     pub t: f64,
     /// Active state(s) after this frame, e.g. `Mapping` or `Core(M&R)`.
     pub state: String,
-    /// Set on the frame where a transition happened.
+    /// Set on the frame where a transition happened (a frame that crosses several states has
+    /// one row per transition).
     pub transition: Option<Transition>,
     pub flags: Flags,
+    /// Map of the frame's pose (in the final atlas), if it has one.
+    pub map: Option<u32>,
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -49,18 +52,26 @@ pub struct Transition {
     pub trigger: String,
 }
 
-/// One row of `closures.csv`.
+/// One row of `closures.csv`: a closure (loop, in Mapping) or relocalization (Relocalize
+/// region) candidate and what became of it.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ClosureRow {
+    pub frame: usize,
+    /// `loop` or `relocalization`.
+    pub kind: String,
     pub t_query: f64,
     pub t_match: f64,
     pub map_query: u32,
     pub map_match: u32,
-    /// Pose of the query keyframe in the match keyframe's frame.
+    pub matched_kf: u32,
+    /// Pose of the query camera in the matched keyframe's camera frame (`T_match · T_query⁻¹`,
+    /// world-to-camera poses).
     pub relative: Isometry3<f64>,
     pub inliers: u32,
-    /// `accepted`, `rejected:<reason>` or `pending`.
+    /// `accepted`, `rolled-back`, `expired` (valid, but no pool formed), or `rejected:<reason>`.
     pub verdict: String,
+    /// The pool that accepted it.
+    pub pool: Option<u32>,
 }
 
 /// Per-stage timing, in milliseconds per frame.
@@ -136,8 +147,23 @@ pub struct Summary {
     pub frames_with_pose: usize,
     pub keyframes: usize,
     pub maps: usize,
+    /// Closure and relocalization candidates the validator saw, and what became of them.
+    pub closure_candidates: usize,
     pub closures_accepted: usize,
     pub closures_rejected: usize,
+    pub closures_rolled_back: usize,
+    /// Pools (atlas transactions) accepted, and how many were rolled back.
+    pub pools: usize,
+    pub pools_rolled_back: usize,
+    /// The modal controller that ran (`ours`, `orbslam2`, `proslam`, `ldso`).
+    pub controller: String,
+    /// Frames whose pose was discarded because it was tracked on a map a rollback undid.
+    pub poses_discarded: usize,
+    /// Keyframes per map at the end.
+    pub map_keyframes: BTreeMap<u32, usize>,
+    /// Why the machine stopped early (corrupted map that no pool explains), if it did.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub stop_reason: Option<String>,
     pub final_state: String,
     pub perturbations: PerturbationPlan,
     pub camera: CameraConfig,
@@ -196,7 +222,7 @@ impl RunOutputs {
 
     pub fn write_states(&self, rows: &[StateRow]) -> Result<()> {
         let mut s = String::from(
-            "frame,timestamp,state,from,trigger,initialized,able_to_track,able_to_localize,consistent_map\n",
+            "frame,timestamp,state,from,trigger,initialized,able_to_track,able_to_localize,consistent_map,map\n",
         );
         for r in rows {
             let (from, trig) = r
@@ -206,7 +232,7 @@ impl RunOutputs {
             let b = |v: bool| u8::from(v);
             let _ = writeln!(
                 s,
-                "{},{:.6},{},{},{},{},{},{},{}",
+                "{},{:.6},{},{},{},{},{},{},{},{}",
                 r.frame,
                 r.t,
                 r.state,
@@ -215,7 +241,8 @@ impl RunOutputs {
                 b(r.flags.initialized),
                 b(r.flags.able_to_track),
                 b(r.flags.able_to_localize),
-                b(r.flags.consistent_map)
+                b(r.flags.consistent_map),
+                r.map.map_or(String::new(), |m| m.to_string())
             );
         }
         atomic_write(&self.path("states.csv"), s.as_bytes())
@@ -223,18 +250,21 @@ impl RunOutputs {
 
     pub fn write_closures(&self, rows: &[ClosureRow]) -> Result<()> {
         let mut s = String::from(
-            "t_query,t_match,map_query,map_match,tx,ty,tz,qx,qy,qz,qw,inliers,verdict\n",
+            "frame,kind,t_query,t_match,map_query,map_match,matched_kf,tx,ty,tz,qx,qy,qz,qw,inliers,verdict,pool\n",
         );
         for r in rows {
             let t = r.relative.translation.vector;
             let q = r.relative.rotation.quaternion().coords;
             let _ = writeln!(
                 s,
-                "{:.6},{:.6},{},{},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{},{}",
+                "{},{},{:.6},{:.6},{},{},{},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{},{},{}",
+                r.frame,
+                r.kind,
                 r.t_query,
                 r.t_match,
                 r.map_query,
                 r.map_match,
+                r.matched_kf,
                 t.x,
                 t.y,
                 t.z,
@@ -243,7 +273,8 @@ impl RunOutputs {
                 q.z,
                 q.w,
                 r.inliers,
-                r.verdict
+                r.verdict,
+                r.pool.map_or(String::new(), |p| p.to_string())
             );
         }
         atomic_write(&self.path("closures.csv"), s.as_bytes())

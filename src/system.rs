@@ -3,7 +3,8 @@
 //! (initializer, tracker, map merger, loop closing) are wired in by their own modules.
 //!
 
-use crate::config::{Config, resolve_camera};
+use crate::atlas::{Atlas, AtlasCamera};
+use crate::config::{Config, ControllerKind, resolve_camera};
 use crate::control::StateMachine;
 use crate::error::{Error, Result};
 use crate::eval::{self, Alignment, RpeUnit};
@@ -37,6 +38,14 @@ pub struct RunOptions {
     /// Threaded mode: local BA on its own thread while tracking goes on (faster, not
     /// bit-reproducible). Default: deterministic, mapping finishes before the next frame.
     pub threaded: bool,
+    /// Override the config's modal controller.
+    pub controller: Option<ControllerKind>,
+    /// Override the config: no loop closing.
+    pub no_loop_closing: bool,
+    /// Init loads this saved atlas (a previous session) before the first frame.
+    pub load_map: Option<PathBuf>,
+    /// Final saves the atlas here.
+    pub save_map: Option<PathBuf>,
 }
 
 /// Runs a whole sequence and writes the run outputs. On a bad frame the outputs gathered so far
@@ -50,6 +59,12 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
     let mut spec = opts.perturb.clone();
     spec.mono |= config.sequence.mono;
     config.sequence.mono = spec.mono;
+    if let Some(k) = opts.controller {
+        config.controller.kind = k;
+    }
+    if opts.no_loop_closing {
+        config.loop_closing.enabled = false;
+    }
     let (camera, source) = resolve_camera(&config, opts.config.as_deref(), &opts.sequence)?;
     tracing::info!("{}", describe_camera(&camera, &source));
     let seq = TumSequence::open(
@@ -82,12 +97,32 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
     if opts.threaded {
         machine.set_threaded();
     }
+    let atlas_camera = AtlasCamera {
+        fx: camera.fx,
+        fy: camera.fy,
+        cx: camera.cx,
+        cy: camera.cy,
+        width: camera.width,
+        height: camera.height,
+    };
+    // Init's entry: a saved atlas from an earlier session.
+    if let Some(path) = &opts.load_map {
+        let atlas = Atlas::load(path, &atlas_camera, spec.mono)?;
+        tracing::info!(
+            "loaded atlas {}: {} maps, {} keyframes",
+            path.display(),
+            atlas.maps.len(),
+            atlas.n_keyframes()
+        );
+        machine.load_atlas(atlas);
+    }
     let mut timing = Timing::default();
     let mut states: Vec<StateRow> = Vec::new();
     // Frame poses are kept relative to their reference keyframe, so that the final trajectory
-    // follows the keyframes' optimised poses (as ORB-SLAM does).
-    let mut relative: Vec<(f64, u32, KfId, Isometry3<f64>)> = Vec::new();
-    let closures: Vec<ClosureRow> = Vec::new();
+    // follows the keyframes' optimised poses (as ORB-SLAM does) and frames of merged maps end
+    // up in the merged frame. Keyframe ids are unique across the atlas.
+    let mut relative: Vec<(usize, f64, KfId, Isometry3<f64>)> = Vec::new();
+    let mut poses_discarded = 0usize;
     let mut failure = None;
     let n = perturbed.len();
     let mut delivered = 0usize;
@@ -135,34 +170,57 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
                 let track_ms = timing.last("track").unwrap_or(0.0);
                 timing.record("extract_track", pre_ms + track_ms);
             }
-            if let Some((pose_cw, map, kf)) = out.pose {
-                let kf_pose = machine.maps[map as usize].keyframes[&kf].pose_cw;
-                relative.push((frame.t, map, kf, pose_cw * kf_pose.inverse()));
+            if let Some(from) = out.invalidated_from {
+                let before = relative.len();
+                relative.retain(|r| r.0 < from);
+                poses_discarded += before - relative.len();
             }
-            let transition = match (states.is_empty(), out.transition) {
-                (_, Some(t)) => Some(t),
-                (true, None) => Some(Transition {
-                    from: "(start)".into(),
-                    trigger: "start".into(),
-                }),
-                (false, None) => None,
-            };
-            states.push(StateRow {
-                frame: frame.index,
-                t: frame.t,
-                state: out.state.clone(),
-                transition,
-                flags: out.flags,
-            });
+            if let Some((pose_cw, map, kf)) = out.pose {
+                let kf_pose = machine.atlas.maps[&map].keyframes[&kf].pose_cw;
+                relative.push((frame.index, frame.t, kf, pose_cw * kf_pose.inverse()));
+            }
+            if states.is_empty() && out.transitions.is_empty() {
+                states.push(StateRow {
+                    frame: frame.index,
+                    t: frame.t,
+                    state: out.state.clone(),
+                    transition: Some(Transition {
+                        from: "(start)".into(),
+                        trigger: "start".into(),
+                    }),
+                    flags: out.flags,
+                    map: None,
+                });
+            } else if out.transitions.is_empty() {
+                states.push(StateRow {
+                    frame: frame.index,
+                    t: frame.t,
+                    state: out.state.clone(),
+                    transition: None,
+                    flags: out.flags,
+                    map: None,
+                });
+            }
+            for t in &out.transitions {
+                states.push(StateRow {
+                    frame: frame.index,
+                    t: frame.t,
+                    state: t.to.clone(),
+                    transition: Some(t.transition.clone()),
+                    flags: t.flags,
+                    map: None,
+                });
+            }
+            if machine.state == crate::control::State::Final {
+                // The controller stopped (LDSO on loss, or a map no pool explains): the rest of
+                // the sequence is not processed.
+                break;
+            }
             if delivered % 100 == 0 {
                 tracing::info!(
                     "frame {delivered}/{n} state {} keyframes {}",
                     out.state,
-                    machine
-                        .maps
-                        .iter()
-                        .map(|m| m.keyframes.len())
-                        .sum::<usize>()
+                    machine.atlas.n_keyframes()
                 );
             }
         }
@@ -180,28 +238,61 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
     let fin = machine.finish(trigger, &mut timing);
     if let Some(last) = states.last() {
         let (frame, t) = (last.frame, last.t);
-        states.push(StateRow {
-            frame,
-            t,
-            state: fin.state.clone(),
-            transition: fin.transition,
-            flags: fin.flags,
-        });
+        for tr in fin.transitions {
+            states.push(StateRow {
+                frame,
+                t,
+                state: tr.to,
+                transition: Some(tr.transition),
+                flags: tr.flags,
+                map: None,
+            });
+        }
     }
     let state = fin.state;
-    let trajectory: Vec<StampedPose> = relative
+    // Resolve every frame's pose through its keyframe in the final atlas.
+    let kf_map: std::collections::BTreeMap<KfId, (u32, Isometry3<f64>)> = machine
+        .atlas
+        .maps
+        .values()
+        .flat_map(|m| m.keyframes.values().map(move |k| (k.id, (m.id, k.pose_cw))))
+        .collect();
+    let mut frame_map: std::collections::BTreeMap<usize, u32> = std::collections::BTreeMap::new();
+    let mut trajectory: Vec<StampedPose> = Vec::with_capacity(relative.len());
+    for (frame, t, kf, rel) in &relative {
+        let Some((map, kf_pose)) = kf_map.get(kf) else {
+            poses_discarded += 1;
+            continue;
+        };
+        frame_map.insert(*frame, *map);
+        trajectory.push(StampedPose {
+            t: *t,
+            pose: (rel * kf_pose).inverse(),
+        });
+    }
+    for row in states.iter_mut() {
+        row.map = frame_map.get(&row.frame).copied();
+    }
+    if let Some(path) = &opts.save_map {
+        // Final: the atlas is stored for a later session.
+        machine.atlas.save(path, atlas_camera.clone(), spec.mono)?;
+        tracing::info!("atlas saved to {}", path.display());
+    }
+    let closures: Vec<ClosureRow> = machine
+        .closures
         .iter()
-        .map(|(t, map, kf, rel)| {
-            let kf_pose = machine.maps[*map as usize].keyframes[kf].pose_cw;
-            StampedPose {
-                t: *t,
-                pose: (rel * kf_pose).inverse(),
+        .cloned()
+        .map(|mut c| {
+            if c.verdict == "pending" {
+                c.verdict = "expired".into();
             }
+            c
         })
         .collect();
     let keyframes: Vec<(StampedPose, u32)> = machine
+        .atlas
         .maps
-        .iter()
+        .values()
         .flat_map(|m| {
             m.keyframes.values().map(move |k| {
                 (
@@ -228,7 +319,23 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
         frames: delivered,
         frames_with_pose: trajectory.len(),
         keyframes: keyframes.len(),
-        maps: machine.maps.len(),
+        maps: machine.atlas.maps.len(),
+        closure_candidates: closures.len(),
+        closures_rolled_back: closures
+            .iter()
+            .filter(|c| c.verdict == "rolled-back")
+            .count(),
+        pools: machine.atlas.pools.len(),
+        pools_rolled_back: machine.atlas.pools.iter().filter(|p| p.rolled_back).count(),
+        controller: config.controller.kind.as_str().into(),
+        poses_discarded,
+        map_keyframes: machine
+            .atlas
+            .maps
+            .values()
+            .map(|m| (m.id, m.keyframes.len()))
+            .collect(),
+        stop_reason: machine.stop_reason.clone(),
         closures_accepted: closures.iter().filter(|c| c.verdict == "accepted").count(),
         closures_rejected: closures
             .iter()

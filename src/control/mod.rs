@@ -1,51 +1,96 @@
-//! The modal controller: the SLAM state machine of the paper (section V). Components compute and
-//! report flags; only this module decides what runs on each measurement.
+//! The modal controller: the SLAM state machine of the paper (section V) and the peers'
+//! controllers (section IV), on the same components. Components compute and report flags;
+//! only this module decides what runs on each measurement.
 //!
-//! Implemented so far: Init → [initialized] → Idle → [able_to_track] → Core (region Mapping)
-//! → [!able_to_track] → Idle, and Interruptible → Final at the end of data. Relocalize,
-//! Localized and CorruptedMap arrive with the multi-map atlas.
+//! The machine itself is data ([`spec::MachineSpec`]): states with their entry/do activities
+//! and guarded transitions. [`StateMachine::step`] runs the active state's *do* activity on a
+//! measurement (which updates the flags), then follows the first outgoing transition whose
+//! guard holds, runs the target's *entry* activity, and repeats while guards hold (a frame can
+//! cross several states, e.g. Core → Localized → CorruptedMap when the entry's global
+//! optimisation finds the map inconsistent). Every transition is reported.
 
+pub mod actions;
 pub mod spec;
 
+use crate::atlas::{Atlas, MapId};
 use crate::config::{CameraConfig, Config};
 use crate::initializer::Initializer;
-use crate::map::{KfId, Map};
+use crate::loop_detector::LoopDetector;
+use crate::loop_validator::{Accepted, Pool};
+use crate::map::KfId;
 use crate::map_merger::MapMerger;
 use crate::optim::Intrinsics;
-use crate::output::{Flags, Timing, Transition};
+use crate::output::{ClosureRow, Flags, Timing, Transition};
 use crate::preprocess::{ImageGeometry, Measurement};
 use crate::tracker::Tracker;
 use nalgebra::Isometry3;
-
-/// The states of the machine.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum State {
-    Init,
-    Idle,
-    /// Orthogonal regions Mapping and Relocalize; shown as "Mapping" while the atlas has a
-    /// single map (nothing to relocalize against).
-    Core,
-    Final,
-}
+pub use spec::{Activity, Guard, MachineSpec, State};
 
 /// What one step produced.
 #[derive(Debug, Clone)]
 pub struct StepOutput {
+    /// Active state(s) after the step, e.g. `Mapping` or `Core(M&R)`.
     pub state: String,
-    pub transition: Option<Transition>,
+    /// Transitions taken during the step, in order.
+    pub transitions: Vec<TransitionTaken>,
     pub flags: Flags,
-    /// World-to-camera pose when the frame was tracked, with the reference keyframe.
-    pub pose: Option<(Isometry3<f64>, u32, KfId)>,
+    /// World-to-camera pose when the frame was tracked, with its map and reference keyframe.
+    pub pose: Option<(Isometry3<f64>, MapId, KfId)>,
+    /// Frames from this index on were tracked on a map that a rollback just discarded.
+    pub invalidated_from: Option<usize>,
+}
+
+/// A transition as states.csv records it.
+#[derive(Debug, Clone)]
+pub struct TransitionTaken {
+    pub to: String,
+    pub transition: Transition,
+    pub flags: Flags,
+}
+
+/// Internal conditions besides the paper's four flags.
+#[derive(Debug, Clone, Copy, Default)]
+struct Conditions {
+    left_known_area: bool,
+    recovered: Option<bool>,
 }
 
 pub struct StateMachine {
+    pub spec: MachineSpec,
     pub state: State,
+    flags: Flags,
+    cond: Conditions,
+    cfg: Config,
+    geo: ImageGeometry,
     initializer: Initializer,
     tracker: Tracker,
     merger: MapMerger,
-    /// The atlas: one map per tracking session.
-    pub maps: Vec<Map>,
-    flags: Flags,
+    detector: LoopDetector,
+    /// Relocalization pool (frames of the Relocalize region) and loop pool (keyframes of the
+    /// Mapping region).
+    reloc_pool: Pool,
+    loop_pool: Pool,
+    /// Every map of the run.
+    pub atlas: Atlas,
+    /// The map the tracker works in.
+    current: Option<MapId>,
+    /// Stamp of the last tracked frame (a short gap is re-tracked in the same map).
+    last_tracked_t: Option<f64>,
+    /// The pool accepted by the validator, waiting for Localized's entry.
+    accepted: Option<Accepted>,
+    /// Consecutive frames in Localized whose expectation failed.
+    expectation_failures: u32,
+    /// Why the map was found inconsistent: pools the global optimizer flagged (empty: the
+    /// expectation check failed).
+    suspects: Vec<u32>,
+    /// Every closure or relocalization candidate, for closures.csv.
+    pub closures: Vec<ClosureRow>,
+    /// The first frame each standing pool's map state was used from (for invalidation).
+    pool_frames: Vec<(u32, usize)>,
+    /// Set when the machine stopped because the map is unusable.
+    pub stop_reason: Option<String>,
+    invalidated_from: Option<usize>,
+    mono: bool,
 }
 
 impl StateMachine {
@@ -53,8 +98,15 @@ impl StateMachine {
         let (sf, nl) = (config.orb.scale_factor, config.orb.n_levels);
         let geo = ImageGeometry::new(intr, camera.width, camera.height, sf, nl)
             .with_readout(camera.readout_s);
+        let spec = MachineSpec::for_kind(config.controller.kind);
         Self {
             state: State::Init,
+            flags: Flags {
+                consistent_map: true,
+                ..Flags::default()
+            },
+            cond: Conditions::default(),
+            cfg: config.clone(),
             initializer: Initializer {
                 min_points: config.mapping.min_init_depth_points as usize,
                 max_depth: config.mapping.max_point_depth_m,
@@ -63,10 +115,35 @@ impl StateMachine {
                 n_levels: nl,
             },
             tracker: Tracker::new(&config.tracker, geo.clone()),
-            merger: MapMerger::new(&config.mapping, geo),
-            maps: Vec::new(),
-            flags: Flags::default(),
+            merger: MapMerger::new(&config.mapping, geo.clone()),
+            detector: LoopDetector::from_config(&config.loop_closing),
+            reloc_pool: Pool::default(),
+            loop_pool: Pool::default(),
+            atlas: Atlas::new(),
+            current: None,
+            last_tracked_t: None,
+            accepted: None,
+            expectation_failures: 0,
+            suspects: Vec::new(),
+            closures: Vec::new(),
+            pool_frames: Vec::new(),
+            stop_reason: None,
+            invalidated_from: None,
+            mono: config.sequence.mono,
+            geo,
+            spec,
         }
+    }
+
+    /// Starts from a saved atlas (multi-session, Init's entry): its maps become the "other
+    /// maps" the Relocalize region looks in.
+    pub fn load_atlas(&mut self, atlas: Atlas) {
+        for map in atlas.maps.values() {
+            for kf in map.keyframes.values() {
+                self.detector.insert(kf.id as u64, &kf.descriptors);
+            }
+        }
+        self.atlas = atlas;
     }
 
     /// Threaded mode: local BA runs on its own thread (see `MapMerger::set_threaded`).
@@ -74,129 +151,117 @@ impl StateMachine {
         self.merger.set_threaded();
     }
 
-    /// Local BA results from the mapping thread that are ready (threaded mode only).
-    fn collect_mapping(&mut self, wait: bool, timing: &mut Timing) {
-        for ms in self.merger.poll(&mut self.maps, wait) {
-            timing.record("local_ba_thread", ms);
-        }
-    }
-
+    /// The state name as states.csv shows it.
     pub fn state_name(&self) -> String {
         match self.state {
-            State::Init => "Init".into(),
-            State::Idle => "Idle".into(),
-            State::Core if self.maps.len() > 1 => "Core(M&R)".into(),
+            State::Core if self.atlas.maps.len() > 1 => "Core(M&R)".into(),
             State::Core => "Mapping".into(),
-            State::Final => "Final".into(),
+            s => self.spec.state(s).name.into(),
         }
     }
 
-    fn go(&mut self, to: State, trigger: &str) -> Option<Transition> {
-        let from = self.state_name();
-        self.state = to;
-        tracing::debug!("{from} -> {} on {trigger}", self.state_name());
-        Some(Transition {
-            from,
-            trigger: trigger.into(),
-        })
+    pub fn flags(&self) -> Flags {
+        self.flags
+    }
+
+    fn guard(&self, g: Guard) -> bool {
+        match g {
+            Guard::Initialized => self.flags.initialized,
+            Guard::AbleToTrack => self.flags.able_to_track,
+            Guard::NotAbleToTrack => !self.flags.able_to_track,
+            Guard::AbleToLocalize => self.flags.able_to_localize,
+            Guard::NotConsistentMap => !self.flags.consistent_map,
+            Guard::LeftKnownArea => self.cond.left_known_area,
+            Guard::Recovered => self.cond.recovered == Some(true),
+            Guard::NotRecovered => self.cond.recovered == Some(false),
+        }
     }
 
     /// Processes one measurement in the current state.
     pub fn step(&mut self, m: &Measurement, timing: &mut Timing) -> StepOutput {
-        let mut transition = None;
-        let mut pose = None;
-        match self.state {
-            State::Final => {}
-            State::Init => {
-                let id = self.maps.len() as u32;
-                if let Some((map, kf)) =
-                    timing.time("initialize", || self.initializer.try_initialize(m, id))
-                {
-                    let matches = map.keyframes[&kf].points.clone();
-                    self.tracker.reset(Isometry3::identity(), m.t, &matches, kf);
-                    self.merger.started(m.frame);
-                    self.maps.push(map);
-                    self.flags.initialized = true;
-                    pose = Some((Isometry3::identity(), id, kf));
-                    transition = self.go(State::Idle, "initialized");
-                }
-            }
-            State::Idle | State::Core => {
-                self.collect_mapping(false, timing);
-                let map_id = self.maps.len() - 1;
-                let map = &self.maps[map_id];
-                let track = timing.time("track", || self.tracker.track(m, map));
-                self.flags.able_to_track = track.able_to_track;
-                tracing::debug!(
-                    "frame {}: {:?}, {} inliers of {} key points, mean chi2 {:.3}",
-                    m.frame,
-                    track.method,
-                    track.n_inliers,
-                    m.len(),
-                    track.mean_chi2
-                );
-                if track.able_to_track {
-                    if self.state == State::Idle {
-                        transition = self.go(State::Core, "able_to_track");
-                    }
-                    let map = &mut self.maps[map_id];
-                    // Mapping region: the map merger grows the local map.
-                    self.merger.note_tracked(map, &track);
-                    if self.merger.need_keyframe(map, m, &track) {
-                        let r = timing.time("map", || self.merger.insert_keyframe(map, m, &track));
-                        tracing::debug!(
-                            "keyframe {} at frame {}: {} new points, {} fused, {} culled, BA {:.1} -> {:.1} ({} outliers)",
-                            r.keyframe,
-                            m.frame,
-                            r.new_points,
-                            r.fused,
-                            r.culled,
-                            r.ba_initial_cost,
-                            r.ba_final_cost,
-                            r.ba_outliers
-                        );
-                        self.tracker.reference_kf = Some(r.keyframe);
-                    }
-                    let kf = track
-                        .reference_kf
-                        .or(self.tracker.reference_kf)
-                        .unwrap_or(0);
-                    pose = Some((track.pose_cw, map_id as u32, kf));
-                } else if self.state == State::Core {
-                    transition = self.go(State::Idle, "!able_to_track");
-                }
-            }
+        self.invalidated_from = None;
+        let activity = self.spec.state(self.state).activity;
+        let pose = self.run_activity(activity, m, timing);
+        let mut transitions = Vec::new();
+        // Follow guarded transitions until none holds (bounded: the tables have no cycle of
+        // guards that can all hold at once, but a bug must not hang a run).
+        for _ in 0..6 {
+            let Some(t) = self
+                .spec
+                .outgoing(self.state)
+                .find(|t| self.guard(t.guard))
+                .copied()
+            else {
+                break;
+            };
+            let from = self.state_name();
+            tracing::debug!(
+                "frame {}: {from} -> {:?} [{}]",
+                m.frame,
+                t.to,
+                t.guard.label()
+            );
+            self.exit(self.state);
+            self.state = t.to;
+            self.enter(t.to, m, timing);
+            transitions.push(TransitionTaken {
+                to: self.state_name(),
+                transition: Transition {
+                    from,
+                    trigger: t.guard.label().into(),
+                },
+                flags: self.flags,
+            });
         }
+        // The frame's pose stands only if the state it ends in still has a map for it.
+        let pose = pose.filter(|(_, map, kf)| {
+            self.atlas
+                .maps
+                .get(map)
+                .is_some_and(|mm| mm.keyframes.contains_key(kf))
+        });
         StepOutput {
             state: self.state_name(),
-            transition,
+            transitions,
             flags: self.flags,
             pose,
+            invalidated_from: self.invalidated_from,
         }
     }
 
-    /// Interruptible → Final (end of data or user stop).
-    pub fn finish(&mut self, trigger: &str, timing: &mut Timing) -> StepOutput {
-        let transition = self.go(State::Final, trigger);
-        self.collect_mapping(true, timing);
-        // Final, entry: batch refinement of every map.
-        for map in &mut self.maps {
-            if let Some(r) = timing.time("final_ba", || self.merger.global_ba(map)) {
-                tracing::info!(
-                    "final BA of map {}: {} keyframes, cost {:.1} -> {:.1}, {} outlier observations",
-                    map.id,
-                    map.keyframes.len(),
-                    r.initial_cost,
-                    r.final_cost,
-                    r.outliers.len()
-                );
-            }
+    fn exit(&mut self, s: State) {
+        if s == State::Localized {
+            self.expectation_failures = 0;
         }
+    }
+
+    /// Interruptible → Final (end of data, user stop, or an input error).
+    pub fn finish(&mut self, trigger: &str, timing: &mut Timing) -> StepOutput {
+        let from = self.state_name();
+        let was_final = self.state == State::Final;
+        self.state = State::Final;
+        self.merger.poll(&mut self.atlas, true);
+        if !was_final {
+            self.final_refinement(timing);
+        }
+        let transitions = if was_final {
+            Vec::new()
+        } else {
+            vec![TransitionTaken {
+                to: self.state_name(),
+                transition: Transition {
+                    from,
+                    trigger: trigger.into(),
+                },
+                flags: self.flags,
+            }]
+        };
         StepOutput {
             state: self.state_name(),
-            transition,
+            transitions,
             flags: self.flags,
             pose: None,
+            invalidated_from: None,
         }
     }
 }

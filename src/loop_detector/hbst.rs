@@ -158,7 +158,10 @@ fn scan(leaf: &[Words], q: &Words, max: u32, out: &mut Vec<(u32, u32)>) {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Node {
     /// Descriptors with bit `bit` clear go to `children[0]`, set to `children[1]`.
-    Split { bit: u8, children: [u32; 2] },
+    Split {
+        bit: u8,
+        children: [u32; 2],
+    },
     Leaf(u32),
 }
 

@@ -169,9 +169,7 @@ impl<I: DescriptorIndex> LoopDetector<I> {
     /// Queries without storing (e.g. relocalization of a frame against other maps).
     pub fn detect(&self, descriptors: &[Descriptor], exclude: impl Fn(u64) -> bool) -> Detection {
         let own = self.params.self_similarity.is_some();
-        let r = self
-            .index
-            .query_detailed(descriptors, |i| !exclude(i), own);
+        let r = self.index.query_detailed(descriptors, |i| !exclude(i), own);
         score(descriptors.len(), &r, &self.params)
     }
 

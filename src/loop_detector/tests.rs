@@ -204,10 +204,7 @@ fn hbst_matches_are_a_subset_of_brute_force_and_equal_without_splits() {
         bf.insert(i as u64, d);
     }
     let mut rng = ChaCha8Rng::seed_from_u64(6);
-    let q: Vec<Descriptor> = images[3]
-        .iter()
-        .map(|d| perturb(&mut rng, d, 6))
-        .collect();
+    let q: Vec<Descriptor> = images[3].iter().map(|d| perturb(&mut rng, d, 6)).collect();
     let accept = |i: u64| i != 4;
     let exact = bf.query_detailed(&q, accept, true);
     assert_eq!(flat.query_detailed(&q, accept, true), exact);
@@ -238,7 +235,10 @@ fn query_and_insert_equals_query_then_insert() {
         let rb = b.query_detailed(d, accept, true);
         b.insert(key, d);
         assert_eq!(ra, rb, "image {i}");
-        assert!(!ra.matches.contains_key(&key), "an image must not match itself");
+        assert!(
+            !ra.matches.contains_key(&key),
+            "an image must not match itself"
+        );
     }
     assert_eq!(a.stats(), b.stats());
     assert_eq!(a.stored(), b.stored());
@@ -279,9 +279,11 @@ fn inserting_a_key_again_continues_its_reference_indices() {
     t.insert(1, &y);
     let m = t.query(&y, |_| true);
     for (q, _) in y.iter().enumerate() {
-        assert!(m[&1].iter().any(|x| x.query == q as u32
-            && x.reference == 10 + q as u32
-            && x.distance == 0));
+        assert!(
+            m[&1]
+                .iter()
+                .any(|x| x.query == q as u32 && x.reference == 10 + q as u32 && x.distance == 0)
+        );
     }
 }
 
@@ -393,17 +395,17 @@ fn detector_finds_the_revisited_keyframe_and_respects_exclusion() {
     }
     assert_eq!(det.recent_images(3), BTreeSet::from([27, 28, 29]));
     // Revisit place 12 with 5-bit noise on every descriptor (plus 100 new descriptors).
-    let mut revisit: Vec<Descriptor> = places[12]
-        .iter()
-        .map(|d| perturb(&mut rng, d, 5))
-        .collect();
+    let mut revisit: Vec<Descriptor> = places[12].iter().map(|d| perturb(&mut rng, d, 5)).collect();
     revisit.extend(random_descs(&mut rng, 100));
     let d = det.detect(&revisit, |_| false);
     assert_eq!(d.candidates.len(), 1, "{:?}", d.report);
     let c = &d.candidates[0];
     assert_eq!(c.image, 12);
     assert!(c.score > 0.4, "score {}", c.score);
-    assert!(c.matches.iter().all(|&(q, r)| q == r), "wrong correspondences");
+    assert!(
+        c.matches.iter().all(|&(q, r)| q == r),
+        "wrong correspondences"
+    );
     // Excluded → no candidate; then stored and queried again it finds both visits.
     assert!(det.detect(&revisit, |i| i == 12).candidates.is_empty());
     det.detect_and_insert(100, &revisit, |_| false);

@@ -1,0 +1,775 @@
+//! The states' activities: how each state calls the components. Components report flags
+//! and statistics; these functions set the machine's flags from them and never choose the
+//! next state (the transition table does).
+
+use super::StateMachine;
+use super::spec::{Acceptance, Activity, LoopScope, State};
+use crate::atlas::{ClosureEdge, MapId, PoolId, PoolKind};
+use crate::loop_validator::{
+    self, Accepted, Agreement, Query, Verdict, as_sim3, relative, relative_information,
+};
+use crate::map::KfId;
+use crate::output::{ClosureRow, Timing};
+use crate::preprocess::Measurement;
+use crate::tracker::TrackResult;
+use nalgebra::Isometry3;
+use std::collections::BTreeSet;
+
+/// A frame's pose with its map and reference keyframe.
+pub type Pose = (Isometry3<f64>, MapId, KfId);
+
+/// Candidates validated per query (best scores first): geometry costs a few milliseconds each.
+const CANDIDATES_PER_QUERY: usize = 2;
+
+impl StateMachine {
+    pub(super) fn run_activity(
+        &mut self,
+        activity: Activity,
+        m: &Measurement,
+        timing: &mut Timing,
+    ) -> Option<Pose> {
+        for ms in self.merger.poll(&mut self.atlas, false) {
+            timing.record("local_ba_thread", ms);
+        }
+        match activity {
+            Activity::Initialize => self.initialize(m, timing),
+            Activity::Restart { new_map, same_map } => self.restart(m, new_map, same_map, timing),
+            Activity::TrackAndMap {
+                loop_scope,
+                relocalize,
+            } => self.track_and_map(m, loop_scope, relocalize, timing),
+            Activity::TrackLocalized => self.track_localized(m, timing),
+            Activity::Recover => {
+                timing.time("recover", || self.recover());
+                None
+            }
+            Activity::RelocalizeOnly => self.relocalize_only(m, timing),
+            Activity::None => None,
+        }
+    }
+
+    /// Entry activities.
+    pub(super) fn enter(&mut self, s: State, m: &Measurement, timing: &mut Timing) {
+        match s {
+            State::Localized => self.localize(m, timing),
+            State::CorruptedMap => self.cond.recovered = None,
+            State::Final => self.final_refinement(timing),
+            _ => {}
+        }
+    }
+
+    /// Init: the initializer on each measurement until it reports `initialized`.
+    fn initialize(&mut self, m: &Measurement, timing: &mut Timing) -> Option<Pose> {
+        self.flags.able_to_track = false;
+        let pose = self.start_new_map(m, timing)?;
+        self.flags.initialized = true;
+        Some(pose)
+    }
+
+    /// A new map whose first keyframe is this frame (RGB-D: one frame with enough depth).
+    fn start_new_map(&mut self, m: &Measurement, timing: &mut Timing) -> Option<Pose> {
+        let blank = self.atlas.blank_map();
+        let (map, kf) = timing.time("initialize", || self.initializer.try_initialize(m, blank))?;
+        let id = self.atlas.insert_map(map);
+        self.detector.insert(kf as u64, &m.descriptors);
+        self.start_tracking_in(id, kf, Isometry3::identity(), m);
+        tracing::info!("frame {}: new map {id}", m.frame);
+        Some((Isometry3::identity(), id, kf))
+    }
+
+    /// Points the tracker at map `id`, at `pose`, with the points of keyframe `kf` as the
+    /// last frame's matches.
+    fn start_tracking_in(&mut self, id: MapId, kf: KfId, pose: Isometry3<f64>, m: &Measurement) {
+        self.current = Some(id);
+        self.atlas.activate(id);
+        let matches = self.atlas.maps[&id].keyframes[&kf].points.clone();
+        self.tracker.reset(pose, m.t, &matches, kf);
+        self.merger.started(m.frame);
+        self.last_tracked_t = Some(m.t);
+        self.reloc_pool.clear();
+        self.loop_pool.clear();
+    }
+
+    /// Idle (and ProSLAM's lost state): re-track a short interruption in the current map; else
+    /// start a new map from this frame.
+    fn restart(
+        &mut self,
+        m: &Measurement,
+        new_map: bool,
+        same_map: bool,
+        timing: &mut Timing,
+    ) -> Option<Pose> {
+        self.flags.able_to_track = false;
+        let gap = self.cfg.controller.reacquire_gap_s;
+        let recent = self.last_tracked_t.is_some_and(|t| m.t - t <= gap);
+        if let (true, true, Some(cur)) = (same_map, recent, self.current) {
+            let map = &self.atlas.maps[&cur];
+            let track = timing.time("track", || self.tracker.track(m, map));
+            if track.able_to_track {
+                return Some(self.tracked(cur, &track, m));
+            }
+            self.tracker.lose();
+        }
+        if new_map && !self.mono {
+            let pose = self.start_new_map(m, timing)?;
+            self.flags.able_to_track = true;
+            return Some(pose);
+        }
+        None
+    }
+
+    /// Bookkeeping of a tracked frame; returns its pose.
+    fn tracked(&mut self, cur: MapId, track: &TrackResult, m: &Measurement) -> Pose {
+        self.flags.able_to_track = true;
+        self.last_tracked_t = Some(m.t);
+        let map = self.atlas.maps.get_mut(&cur).expect("current map exists");
+        self.merger.note_tracked(map, track);
+        let kf = track
+            .reference_kf
+            .or(self.tracker.reference_kf)
+            .or_else(|| map.keyframes.keys().next_back().copied())
+            .expect("a map has a keyframe");
+        (track.pose_cw, cur, kf)
+    }
+
+    /// Core: region Mapping (tracker, map merger, loop closing on the current map) and region
+    /// Relocalize (the other maps).
+    fn track_and_map(
+        &mut self,
+        m: &Measurement,
+        scope: LoopScope,
+        relocalize: bool,
+        timing: &mut Timing,
+    ) -> Option<Pose> {
+        let Some(cur) = self.current else {
+            self.flags.able_to_track = false;
+            return None;
+        };
+        let map = &self.atlas.maps[&cur];
+        let track = timing.time("track", || self.tracker.track(m, map));
+        tracing::debug!(
+            "frame {}: {:?}, {} inliers of {} key points, mean chi2 {:.3}",
+            m.frame,
+            track.method,
+            track.n_inliers,
+            m.len(),
+            track.mean_chi2
+        );
+        if !track.able_to_track {
+            self.flags.able_to_track = false;
+            self.tracker.lose();
+            return None;
+        }
+        let pose = self.tracked(cur, &track, m);
+        let map = self.atlas.maps.get_mut(&cur).expect("current map exists");
+        let mut new_kf = None;
+        if self.merger.need_keyframe(map, m, &track, true) {
+            let r = timing.time("map", || self.merger.insert_keyframe(map, m, &track));
+            tracing::debug!(
+                "keyframe {} at frame {}: {} new points, {} fused, {} culled, BA {:.1} -> {:.1} ({} outliers)",
+                r.keyframe,
+                m.frame,
+                r.new_points,
+                r.fused,
+                r.culled,
+                r.ba_initial_cost,
+                r.ba_final_cost,
+                r.ba_outliers
+            );
+            self.tracker.reference_kf = Some(r.keyframe);
+            new_kf = Some(r.keyframe);
+        }
+        if let Some(kf) = new_kf {
+            if self.cfg.loop_closing.enabled {
+                timing.time("loop_closing", || self.close_loops(m, kf, scope));
+            } else {
+                self.detector.insert(kf as u64, &m.descriptors);
+            }
+        }
+        let others = self.atlas.maps.len() > 1;
+        if relocalize && others && self.cfg.loop_closing.enabled && !self.flags.able_to_localize {
+            timing.time("relocalize", || self.relocalize(m, &track));
+        }
+        Some(pose)
+    }
+
+    /// Mapping region: the new keyframe queries the loop detector (and is stored in it); the
+    /// best candidates are validated and offered to the loop pool.
+    fn close_loops(&mut self, m: &Measurement, kf: KfId, scope: LoopScope) {
+        let Some(cur) = self.current else { return };
+        let map = &self.atlas.maps[&cur];
+        let own: BTreeSet<KfId> = map.keyframes.keys().copied().collect();
+        let covisible: BTreeSet<KfId> = map.keyframes[&kf].covisibility.keys().copied().collect();
+        let recent = self
+            .detector
+            .recent_images(self.cfg.loop_closing.temporal_window as usize);
+        let exclude = |img: u64| {
+            let k = img as KfId;
+            let near = recent.contains(&img) || covisible.contains(&k);
+            match scope {
+                LoopScope::CurrentMap => !own.contains(&k) || near,
+                LoopScope::AllMaps => own.contains(&k) && near,
+            }
+        };
+        let det = self
+            .detector
+            .detect_and_insert(kf as u64, &m.descriptors, exclude);
+        let query_pose = self.atlas.maps[&cur].keyframes[&kf].pose_cw;
+        for c in det.candidates.iter().take(CANDIDATES_PER_QUERY) {
+            let Some(match_map) = self.atlas.map_of_keyframe(c.image as KfId) else {
+                continue;
+            };
+            let q = Query {
+                m,
+                map: cur,
+                pose: query_pose,
+                kf: Some(kf),
+            };
+            let verdict = loop_validator::validate(
+                &self.cfg.loop_closing,
+                &self.geo,
+                &q,
+                &self.atlas.maps[&match_map],
+                c,
+            );
+            let window = self.cfg.loop_closing.loop_pool_window_frames as usize;
+            if self.offer(verdict, m, "loop", window) {
+                break;
+            }
+        }
+    }
+
+    /// Relocalize region: the frame queries the other maps' keyframes.
+    fn relocalize(&mut self, m: &Measurement, track: &TrackResult) {
+        let Some(cur) = self.current else { return };
+        let own: BTreeSet<KfId> = self.atlas.maps[&cur].keyframes.keys().copied().collect();
+        let det = self
+            .detector
+            .detect(&m.descriptors, |img| own.contains(&(img as KfId)));
+        for c in det.candidates.iter().take(CANDIDATES_PER_QUERY) {
+            let Some(match_map) = self.atlas.map_of_keyframe(c.image as KfId) else {
+                continue;
+            };
+            let q = Query {
+                m,
+                map: cur,
+                pose: track.pose_cw,
+                kf: None,
+            };
+            let verdict = loop_validator::validate(
+                &self.cfg.loop_closing,
+                &self.geo,
+                &q,
+                &self.atlas.maps[&match_map],
+                c,
+            );
+            let window = self.cfg.loop_closing.pool_window_frames as usize;
+            if self.offer(verdict, m, "relocalization", window) {
+                break;
+            }
+        }
+    }
+
+    /// Logs a validator verdict and offers a valid candidate to its pool. Returns true when a
+    /// pool was accepted (`able_to_localize`).
+    fn offer(&mut self, verdict: Verdict, m: &Measurement, kind: &str, window: usize) -> bool {
+        let agreement = Agreement::from_config(&self.cfg.loop_closing);
+        let pool_size = self.cfg.loop_closing.pool_size as usize;
+        match verdict {
+            Verdict::Rejected {
+                matched,
+                reason,
+                inliers,
+                pose_in_match,
+            } => {
+                self.log_closure(m, kind, matched, inliers, pose_in_match, reason.as_str());
+                false
+            }
+            Verdict::Valid(v) => {
+                let refused = if kind == "loop" {
+                    self.loop_pool.is_refused(&v, &agreement)
+                } else {
+                    self.reloc_pool.is_refused(&v, &agreement)
+                };
+                if refused {
+                    let r = loop_validator::Rejection::RolledBackAlignment;
+                    self.log_closure(
+                        m,
+                        kind,
+                        v.matched,
+                        v.n_inliers,
+                        Some(v.pose_in_match),
+                        r.as_str(),
+                    );
+                    return false;
+                }
+                self.log_closure(
+                    m,
+                    kind,
+                    v.matched,
+                    v.n_inliers,
+                    Some(v.pose_in_match),
+                    "pending",
+                );
+                let pool = if kind == "loop" {
+                    &mut self.loop_pool
+                } else {
+                    &mut self.reloc_pool
+                };
+                let accepted = match self.spec.acceptance {
+                    Acceptance::Immediate => Some(Accepted {
+                        query_map: v.query_map,
+                        match_map: v.match_map,
+                        alignment: v.alignment(),
+                        members: vec![*v],
+                    }),
+                    Acceptance::Pool => pool.offer(*v, window, pool_size, &agreement),
+                };
+                let Some(acc) = accepted else { return false };
+                tracing::info!(
+                    "frame {}: {kind} pool accepted: map {} -> map {} from {} candidates",
+                    m.frame,
+                    acc.query_map,
+                    acc.match_map,
+                    acc.members.len()
+                );
+                self.accepted = Some(acc);
+                self.flags.able_to_localize = true;
+                true
+            }
+        }
+    }
+
+    fn log_closure(
+        &mut self,
+        m: &Measurement,
+        kind: &str,
+        matched: KfId,
+        inliers: usize,
+        pose_in_match: Option<Isometry3<f64>>,
+        verdict: &str,
+    ) {
+        let match_map = self.atlas.map_of_keyframe(matched).unwrap_or(u32::MAX);
+        let t_match = self
+            .atlas
+            .maps
+            .get(&match_map)
+            .and_then(|mm| mm.keyframes.get(&matched))
+            .map_or(f64::NAN, |k| k.t);
+        // Pose of the query camera relative to the matched keyframe's camera.
+        let rel = match (pose_in_match, self.atlas.maps.get(&match_map)) {
+            (Some(p), Some(mm)) => relative(&mm.keyframes[&matched].pose_cw, &p),
+            _ => Isometry3::identity(),
+        };
+        self.closures.push(ClosureRow {
+            frame: m.frame,
+            kind: kind.into(),
+            t_query: m.t,
+            t_match,
+            map_query: self.current.unwrap_or(u32::MAX),
+            map_match: match_map,
+            matched_kf: matched,
+            relative: rel,
+            inliers: inliers as u32,
+            verdict: verdict.into(),
+            pool: None,
+        });
+    }
+
+    /// Localized's entry: the accepted pool becomes an atlas transaction — maps merged if it
+    /// links two, closure edges added, global optimisation with its consistency check — and the
+    /// tracker continues from the best-matching local map.
+    fn localize(&mut self, m: &Measurement, timing: &mut Timing) {
+        self.flags.able_to_localize = false;
+        let Some(acc) = self.accepted.take() else {
+            return;
+        };
+        for ms in self.merger.poll(&mut self.atlas, true) {
+            timing.record("local_ba_thread", ms);
+        }
+        let (into, from) = (acc.match_map, acc.query_map);
+        // Closure edges, computed in the query map's frame before any merge.
+        let mut edges = Vec::new();
+        for v in &acc.members {
+            let Some(q_map) = self.atlas.maps.get(&from) else {
+                continue;
+            };
+            let Some(m_kf) = self
+                .atlas
+                .maps
+                .get(&into)
+                .and_then(|mm| mm.keyframes.get(&v.matched))
+            else {
+                continue;
+            };
+            // The query's keyframe: itself (loop) or the frame's reference keyframe.
+            let r = v.query_kf.or(self.tracker.reference_kf);
+            let Some(r_kf) = r.and_then(|r| q_map.keyframes.get(&r)) else {
+                continue;
+            };
+            let t_rq = r_kf.pose_cw * v.query_pose.inverse();
+            let r_in_match = t_rq * v.pose_in_match;
+            let rel = relative(&m_kf.pose_cw, &r_in_match);
+            edges.push(ClosureEdge {
+                pool: 0,
+                query: r_kf.id,
+                matched: v.matched,
+                relative: rel,
+                information: relative_information(&rel, &v.information),
+            });
+        }
+        let kind = if into == from {
+            PoolKind::Loop {
+                map: into,
+                correction: (&as_sim3(&acc.alignment)).into(),
+            }
+        } else {
+            PoolKind::Merge {
+                into,
+                from,
+                alignment: (&as_sim3(&acc.alignment)).into(),
+            }
+        };
+        let pool = self.atlas.begin_pool(kind, m.frame, m.t);
+        for e in edges.iter_mut() {
+            e.pool = pool;
+        }
+        self.atlas.add_edges(pool, edges);
+        self.pool_frames.push((pool, acc.members[0].frame));
+        if into != from {
+            if let Err(e) = self.atlas.merge(into, from, &as_sim3(&acc.alignment)) {
+                tracing::warn!("merge failed: {e}");
+                return;
+            }
+            tracing::info!("frame {}: map {from} merged into map {into}", m.frame);
+        }
+        for row in self.closures.iter_mut().rev() {
+            if row.verdict == "pending"
+                && acc
+                    .members
+                    .iter()
+                    .any(|v| v.frame == row.frame && v.matched == row.matched_kf)
+            {
+                row.verdict = "accepted".into();
+                row.pool = Some(pool);
+            }
+        }
+        let last = acc.members.last().expect("a pool has members");
+        let anchor_before = self.atlas.maps[&into]
+            .keyframes
+            .get(&last.matched)
+            .map(|k| k.pose_cw);
+        let report = timing.time("global_opt", || self.global_optimization(into));
+        self.flags.consistent_map = report.consistent;
+        self.suspects = report.offending_pools;
+        // Loop fusion: the query keyframes' points that duplicate matched ones are replaced,
+        // so that the two sides of the loop share points from now on.
+        self.fuse_closure(into, &acc);
+        // The tracker continues at the newest member's pose (a loop's query keyframe as
+        // optimised; a relocalized frame relative to its matched keyframe, which the
+        // optimisation may have moved).
+        let map = &self.atlas.maps[&into];
+        let pose = match last.query_kf.and_then(|k| map.keyframes.get(&k)) {
+            Some(k) => k.pose_cw,
+            None => match (anchor_before, map.keyframes.get(&last.matched)) {
+                (Some(before), Some(after)) => {
+                    last.pose_in_match * before.inverse() * after.pose_cw
+                }
+                _ => last.pose_in_match,
+            },
+        };
+        let ref_kf = last.query_kf.unwrap_or(last.matched);
+        self.current = Some(into);
+        self.atlas.activate(into);
+        let matches = last.matches.clone();
+        self.tracker.reset(pose, m.t, &matches, ref_kf);
+        self.merger.started(m.frame);
+        self.reloc_pool.clear();
+        self.loop_pool.clear();
+        self.expectation_failures = 0;
+    }
+
+    /// Replaces a query keyframe's points by the matched map's points it was matched to.
+    fn fuse_closure(&mut self, map_id: MapId, acc: &Accepted) {
+        let Some(map) = self.atlas.maps.get_mut(&map_id) else {
+            return;
+        };
+        let mut fused = 0;
+        for v in &acc.members {
+            let Some(q) = v.query_kf else { continue };
+            for (i, target) in v.matches.iter().enumerate() {
+                let Some(target) = target else { continue };
+                if !map.points.contains_key(target) {
+                    continue;
+                }
+                let own = map
+                    .keyframes
+                    .get(&q)
+                    .and_then(|k| k.points.get(i).copied().flatten());
+                match own {
+                    Some(p) if p != *target => {
+                        map.replace_point(p, *target);
+                        fused += 1;
+                    }
+                    None => {
+                        map.observe(q, i, *target);
+                        fused += 1;
+                    }
+                    _ => {}
+                }
+            }
+            if map.keyframes.contains_key(&q) {
+                map.update_covisibility(q);
+            }
+        }
+        tracing::debug!("loop fusion: {fused} points");
+    }
+
+    /// Localized: track in known space without new keyframes; check the map's expectation.
+    fn track_localized(&mut self, m: &Measurement, timing: &mut Timing) -> Option<Pose> {
+        let cur = self.current?;
+        let map = &self.atlas.maps[&cur];
+        let track = timing.time("track", || self.tracker.track(m, map));
+        if !track.able_to_track {
+            self.flags.able_to_track = false;
+            self.tracker.lose();
+            return None;
+        }
+        let pose = self.tracked(cur, &track, m);
+        // Expectation: map points predicted visible must be re-observed.
+        let visible = track.visible.len();
+        let ratio = track.n_inliers as f64 / visible.max(1) as f64;
+        let c = &self.cfg.controller;
+        if visible >= c.min_expected_points as usize && ratio < c.min_expectation_ratio {
+            self.expectation_failures += 1;
+        } else {
+            self.expectation_failures = 0;
+        }
+        self.flags.consistent_map = self.expectation_failures < c.corrupted_after_frames;
+        if !self.flags.consistent_map {
+            self.suspects.clear();
+            tracing::info!(
+                "frame {}: {} of {} predicted points re-observed for {} frames: the map contradicts the camera",
+                m.frame,
+                track.n_inliers,
+                visible,
+                self.expectation_failures
+            );
+        }
+        let map = &self.atlas.maps[&cur];
+        self.cond.left_known_area =
+            self.flags.consistent_map && self.merger.need_keyframe(map, m, &track, false);
+        Some(pose)
+    }
+
+    /// Corrupted map: undo the pools that explain the inconsistency, newest first, until the
+    /// map is consistent again.
+    fn recover(&mut self) {
+        self.flags.able_to_track = false;
+        self.merger.poll(&mut self.atlas, true);
+        let mut order: Vec<PoolId> = if self.suspects.is_empty() {
+            self.atlas.last_undoable_pool().into_iter().collect()
+        } else {
+            self.suspects.clone()
+        };
+        order.sort_unstable_by(|a, b| b.cmp(a));
+        order.dedup();
+        let from_optimizer = !self.suspects.is_empty();
+        let mut recovered = false;
+        for p in order {
+            let Some(rec) = self.atlas.pools.get(p as usize).cloned() else {
+                continue;
+            };
+            if !rec.undoable() {
+                continue;
+            }
+            let before: BTreeSet<KfId> = self
+                .atlas
+                .maps
+                .values()
+                .flat_map(|m| m.keyframes.keys().copied())
+                .collect();
+            let undone = match self.atlas.rollback(p) {
+                Ok(u) => u,
+                Err(e) => {
+                    tracing::warn!("rollback of pool {p} failed: {e}");
+                    continue;
+                }
+            };
+            for u in &undone {
+                let r = &self.atlas.pools[u.pool as usize];
+                match &r.kind {
+                    PoolKind::Merge {
+                        into,
+                        from,
+                        alignment,
+                    } => {
+                        let s: crate::geometry::Sim3 = alignment.into();
+                        self.reloc_pool.refuse(*from, *into, sim3_to_iso(&s));
+                        self.loop_pool.refuse(*from, *into, sim3_to_iso(&s));
+                    }
+                    PoolKind::Loop { map, correction } => {
+                        let s: crate::geometry::Sim3 = correction.into();
+                        self.loop_pool.refuse(*map, *map, sim3_to_iso(&s));
+                    }
+                }
+                if let Some((_, f)) = self.pool_frames.iter().find(|(q, _)| *q == u.pool) {
+                    self.invalidated_from = Some(self.invalidated_from.map_or(*f, |x| x.min(*f)));
+                }
+                for row in self.closures.iter_mut() {
+                    if row.pool == Some(u.pool) {
+                        row.verdict = "rolled-back".into();
+                    }
+                }
+                tracing::info!(
+                    "pool {} rolled back: maps {:?} restored, {} keyframes discarded",
+                    u.pool,
+                    u.maps,
+                    u.discarded_keyframes
+                );
+            }
+            let after: BTreeSet<KfId> = self
+                .atlas
+                .maps
+                .values()
+                .flat_map(|m| m.keyframes.keys().copied())
+                .collect();
+            for gone in before.difference(&after) {
+                self.detector.remove(*gone as u64);
+            }
+            recovered = if from_optimizer {
+                let maps: Vec<MapId> = rec
+                    .maps()
+                    .into_iter()
+                    .filter(|m| self.atlas.maps.contains_key(m))
+                    .collect();
+                maps.into_iter()
+                    .all(|m| self.global_optimization(m).consistent)
+            } else {
+                true
+            };
+            if recovered {
+                break;
+            }
+        }
+        self.cond.recovered = Some(recovered);
+        if recovered {
+            self.flags.consistent_map = true;
+            self.tracker.lose();
+            // The camera's place was only known in the corrupted map: start afresh.
+            self.current = None;
+            self.last_tracked_t = None;
+            self.suspects.clear();
+        } else {
+            let msg = "the map is inconsistent and no closure pool explains it: stopping; \
+                       the atlas is marked corrupted";
+            tracing::error!("{msg}");
+            self.stop_reason = Some(msg.into());
+        }
+    }
+
+    /// ORB-SLAM2 when lost: relocalize in the map (first valid candidate); frames get no pose
+    /// until then.
+    fn relocalize_only(&mut self, m: &Measurement, timing: &mut Timing) -> Option<Pose> {
+        self.flags.able_to_track = false;
+        let cur = self.current?;
+        let det = timing.time("relocalize", || {
+            self.detector.detect(&m.descriptors, |_| false)
+        });
+        for c in det.candidates.iter().take(CANDIDATES_PER_QUERY) {
+            if self.atlas.map_of_keyframe(c.image as KfId) != Some(cur) {
+                continue;
+            }
+            let q = Query {
+                m,
+                map: cur,
+                pose: Isometry3::identity(),
+                kf: None,
+            };
+            let verdict = loop_validator::validate(
+                &self.cfg.loop_closing,
+                &self.geo,
+                &q,
+                &self.atlas.maps[&cur],
+                c,
+            );
+            match verdict {
+                Verdict::Valid(v) => {
+                    self.log_closure(
+                        m,
+                        "relocalization",
+                        v.matched,
+                        v.n_inliers,
+                        Some(v.pose_in_match),
+                        "accepted",
+                    );
+                    self.tracker
+                        .reset(v.pose_in_match, m.t, &v.matches, v.matched);
+                    self.flags.able_to_track = true;
+                    self.last_tracked_t = Some(m.t);
+                    // ORB-SLAM2 drops the relocalized frame itself; tracking resumes next frame.
+                    return None;
+                }
+                Verdict::Rejected {
+                    matched,
+                    reason,
+                    inliers,
+                    pose_in_match,
+                } => self.log_closure(
+                    m,
+                    "relocalization",
+                    matched,
+                    inliers,
+                    pose_in_match,
+                    reason.as_str(),
+                ),
+            }
+        }
+        None
+    }
+
+    /// Final's entry: batch refinement of every map (full BA).
+    pub(super) fn final_refinement(&mut self, timing: &mut Timing) {
+        for ms in self.merger.poll(&mut self.atlas, true) {
+            timing.record("local_ba_thread", ms);
+        }
+        let ids: Vec<MapId> = self.atlas.maps.keys().copied().collect();
+        for id in ids {
+            let map = self.atlas.maps.get_mut(&id).expect("listed");
+            if let Some(r) = timing.time("final_ba", || self.merger.global_ba(map)) {
+                tracing::info!(
+                    "final BA of map {id}: {} keyframes, cost {:.1} -> {:.1}, {} outlier observations",
+                    map.keyframes.len(),
+                    r.initial_cost,
+                    r.final_cost,
+                    r.outliers.len()
+                );
+            }
+        }
+    }
+}
+fn sim3_to_iso(s: &crate::geometry::Sim3) -> Isometry3<f64> {
+    Isometry3::from_parts(
+        nalgebra::Translation3::from(s.translation),
+        nalgebra::UnitQuaternion::from_rotation_matrix(&s.rotation),
+    )
+}
+
+/// What the global optimizer reported.
+#[derive(Debug, Clone, Default)]
+pub struct GlobalReport {
+    pub consistent: bool,
+    pub offending_pools: Vec<PoolId>,
+}
+
+impl StateMachine {
+    /// Global optimisation of map `map` with its closure edges, and the consistency check.
+    pub(super) fn global_optimization(&mut self, map: MapId) -> GlobalReport {
+        // TEMPORARY until the pose-graph optimizer lands (branch pgo).
+        let _ = map;
+        GlobalReport {
+            consistent: true,
+            offending_pools: Vec::new(),
+        }
+    }
+}
