@@ -189,6 +189,22 @@ pub struct LoopClosingConfig {
     pub pool_max_rotation_deg: f64,
     /// Normalised chi-square per edge above which the map is inconsistent.
     pub max_normalized_chi2: f64,
+    /// Pose-graph optimisation: Levenberg–Marquardt iterations (per phase).
+    pub pgo_iterations: u32,
+    /// Dynamic covariance scaling Φ (χ² units) of closure edges: a closure with χ² ≤ Φ keeps
+    /// its full weight (12.59 = χ²₀.₉₅ with 6 dof).
+    pub dcs_phi: f64,
+    /// Odometry (essential-graph) edge uncertainty: the drift the tracker may accumulate
+    /// between two connected keyframes.
+    pub odometry_sigma_m: f64,
+    pub odometry_sigma_deg: f64,
+    /// Floor on a closure edge's uncertainty, added to the validator's estimate.
+    pub closure_min_sigma_m: f64,
+    pub closure_min_sigma_deg: f64,
+    /// Keyframes sharing at least this many points are joined in the essential graph.
+    pub essential_min_covisibility: u32,
+    /// Full bundle adjustment after a consistent global optimisation.
+    pub full_ba_after_closure: bool,
 }
 
 impl Default for LoopClosingConfig {
@@ -213,6 +229,14 @@ impl Default for LoopClosingConfig {
             pool_max_translation_m: 0.1,
             pool_max_rotation_deg: 3.0,
             max_normalized_chi2: 3.0,
+            pgo_iterations: 20,
+            dcs_phi: 12.59,
+            odometry_sigma_m: 0.01,
+            odometry_sigma_deg: 0.5,
+            closure_min_sigma_m: 0.005,
+            closure_min_sigma_deg: 0.25,
+            essential_min_covisibility: 100,
+            full_ba_after_closure: true,
         }
     }
 }
@@ -247,12 +271,14 @@ impl ControllerKind {
 #[serde(deny_unknown_fields, default)]
 pub struct ControllerConfig {
     pub kind: ControllerKind,
-    /// Share of map points predicted visible that must be re-observed in Localized.
+    /// Share of the image cells where the map predicts points that must be re-observed in
+    /// Localized.
     pub min_expectation_ratio: f64,
     /// Consecutive failing frames before Localized declares the map corrupted.
     pub corrupted_after_frames: u32,
-    /// The expectation check needs at least this many predicted-visible points to judge.
-    pub min_expected_points: u32,
+    /// The expectation check needs at least this many image cells (20 px) where the map
+    /// predicts points to judge.
+    pub min_expected_cells: u32,
     /// Idle re-tracks in the current map when the last tracked frame is at most this old
     /// (seconds); after a longer loss a new map is started.
     pub reacquire_gap_s: f64,
@@ -264,7 +290,7 @@ impl Default for ControllerConfig {
             kind: ControllerKind::Ours,
             min_expectation_ratio: 0.3,
             corrupted_after_frames: 5,
-            min_expected_points: 30,
+            min_expected_cells: 30,
             reacquire_gap_s: 0.5,
         }
     }
@@ -522,6 +548,26 @@ impl Config {
             180.0,
         );
         c.pos("loop_closing.max_normalized_chi2", l.max_normalized_chi2);
+        c.range(
+            "loop_closing.pgo_iterations",
+            l.pgo_iterations as f64,
+            1.0,
+            1000.0,
+        );
+        c.pos("loop_closing.dcs_phi", l.dcs_phi);
+        c.pos("loop_closing.odometry_sigma_m", l.odometry_sigma_m);
+        c.pos("loop_closing.odometry_sigma_deg", l.odometry_sigma_deg);
+        c.pos("loop_closing.closure_min_sigma_m", l.closure_min_sigma_m);
+        c.pos(
+            "loop_closing.closure_min_sigma_deg",
+            l.closure_min_sigma_deg,
+        );
+        c.range(
+            "loop_closing.essential_min_covisibility",
+            l.essential_min_covisibility as f64,
+            1.0,
+            100000.0,
+        );
         let k = &self.controller;
         c.range(
             "controller.min_expectation_ratio",
@@ -536,8 +582,8 @@ impl Config {
             100000.0,
         );
         c.range(
-            "controller.min_expected_points",
-            k.min_expected_points as f64,
+            "controller.min_expected_cells",
+            k.min_expected_cells as f64,
             1.0,
             100000.0,
         );

@@ -1,6 +1,6 @@
 //! Small geometry helpers shared by components and evaluation.
 
-use nalgebra::{Matrix3, Rotation3, Vector3};
+use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
 
 /// A similarity transform `p ↦ s·R·p + t`.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -20,6 +20,41 @@ impl Sim3 {
     }
     pub fn transform_point(&self, p: &Vector3<f64>) -> Vector3<f64> {
         self.scale * (self.rotation * p) + self.translation
+    }
+
+    /// `self ∘ other`: first `other`, then `self`.
+    pub fn compose(&self, other: &Sim3) -> Sim3 {
+        Sim3 {
+            rotation: self.rotation * other.rotation,
+            translation: self.scale * (self.rotation * other.translation) + self.translation,
+            scale: self.scale * other.scale,
+        }
+    }
+
+    pub fn inverse(&self) -> Sim3 {
+        let r_inv = self.rotation.inverse();
+        Sim3 {
+            rotation: r_inv,
+            translation: -(r_inv * self.translation) / self.scale,
+            scale: 1.0 / self.scale,
+        }
+    }
+
+    /// A rigid transform as a similarity of scale 1.
+    pub fn from_isometry(t: &Isometry3<f64>) -> Sim3 {
+        Sim3 {
+            rotation: t.rotation.to_rotation_matrix(),
+            translation: t.translation.vector,
+            scale: 1.0,
+        }
+    }
+
+    /// The rigid part (the scale is dropped).
+    pub fn to_isometry(&self) -> Isometry3<f64> {
+        Isometry3::from_parts(
+            Translation3::from(self.translation),
+            UnitQuaternion::from_rotation_matrix(&self.rotation),
+        )
     }
 }
 

@@ -13,6 +13,7 @@ pub mod bench;
 pub mod control;
 pub mod eval;
 pub mod geometry;
+pub mod global_optimizer;
 pub mod initializer;
 pub mod loop_detector;
 pub mod loop_validator;

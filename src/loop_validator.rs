@@ -18,7 +18,6 @@
 
 use crate::aligner::{backproject, pnp_ransac, rigid_ransac};
 use crate::config::LoopClosingConfig;
-use crate::geometry::Sim3;
 use crate::map::{KfId, Map, PointId};
 use crate::optim::{
     Observation, PoseObservation, PoseParams, octave_information, refine_pose, se3,
@@ -486,15 +485,6 @@ impl Pool {
         };
         self.recent.clear();
         Some(accepted)
-    }
-}
-
-/// The rigid alignment as the atlas's similarity (scale 1 with depth).
-pub fn as_sim3(a: &Isometry3<f64>) -> Sim3 {
-    Sim3 {
-        rotation: a.rotation.to_rotation_matrix(),
-        translation: a.translation.vector,
-        scale: 1.0,
     }
 }
 

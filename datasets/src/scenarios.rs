@@ -136,11 +136,23 @@ fn furnished_room(sc: &mut Scene, seed: u64, min: [f64; 2], max: [f64; 2], doors
         [1.0, 0.7],
         mix(seed ^ 0x303),
     );
+    // The east poster moves aside when a door takes its place (it would float in the doorway).
+    let mut east = y0 + 1.6;
+    for d in doors.iter().filter(|d| d.side == Side::East) {
+        if (east - d.center).abs() < 0.3 + d.width / 2.0 + 0.1 {
+            let beyond = d.center + d.width / 2.0 + 0.5;
+            east = if beyond + 0.4 < y1 {
+                beyond
+            } else {
+                d.center - d.width / 2.0 - 0.5
+            };
+        }
+    }
     sc.add_poster(
         "room/east",
         Side::East,
         x1,
-        [y0 + 1.6, 1.1],
+        [east, 1.1],
         [0.6, 0.8],
         mix(seed ^ 0x304),
     );
@@ -221,6 +233,12 @@ pub fn loop_scenario(seed: u64) -> Scenario {
         &[door(Side::West, 2.0)],
     );
     sc.add_door_frame(0, 5.0, 5.1, 2.0, 1.0, 2.1, mix(seed ^ 0x401));
+    // Two cabinets in the corridor: through the doorway the corridor's end wall is beyond
+    // the depth sensor's range and its side walls are hidden, so without something near an
+    // RGB-D camera would see no depth at all there (this scenario is about the loop, not
+    // about a sensor outage; the case study has those).
+    sc.add_box([7.5, 1.0, 0.0], [8.3, 1.5, 1.6], mix(seed ^ 0x402));
+    sc.add_box([9.5, 2.5, 0.0], [10.3, 3.0, 1.6], mix(seed ^ 0x403));
     for (k, x) in [6.5, 9.0, 11.5].iter().enumerate() {
         sc.add_poster(
             &format!("corridor/n{k}"),
@@ -246,7 +264,9 @@ pub fn loop_scenario(seed: u64) -> Scenario {
     r.turn_to(90.0).turn_to(-20.0).go(3.5, 2.0).mark("corridor");
     r.go(12.0, 2.0).turn_to(180.0).mark("back");
     r.go(5.6, 2.0).mark("return");
-    r.go(2.0, 1.8).turn_to(150.0).wait(1.0);
+    // Back at the start it looks around the room: a loop is closed once several keyframes
+    // agree on it (the validator's pool), as in ORB-SLAM.
+    r.go(2.0, 1.8).turn_to(150.0).look_around(60.0).wait(1.0);
     let defs: &[(&str, &str, &[&str])] = &[
         ("start", "camera turned on", &["Init", "Idle"]),
         ("explore room", "explores the room", &["Mapping"]),
@@ -258,7 +278,7 @@ pub fn loop_scenario(seed: u64) -> Scenario {
         ),
         (
             "loop closure",
-            "re-enters the room and returns to the start pose",
+            "re-enters the room, returns to the start pose and looks around",
             &["Localized"],
         ),
     ];

@@ -5,8 +5,10 @@
 use super::StateMachine;
 use super::spec::{Acceptance, Activity, LoopScope, State};
 use crate::atlas::{ClosureEdge, MapId, PoolId, PoolKind};
+use crate::geometry::Sim3;
+use crate::global_optimizer::{self, GlobalReport};
 use crate::loop_validator::{
-    self, Accepted, Agreement, Query, Verdict, as_sim3, relative, relative_information,
+    self, Accepted, Agreement, Query, Verdict, relative, relative_information,
 };
 use crate::map::KfId;
 use crate::output::{ClosureRow, Timing};
@@ -20,6 +22,9 @@ pub type Pose = (Isometry3<f64>, MapId, KfId);
 
 /// Candidates validated per query (best scores first): geometry costs a few milliseconds each.
 const CANDIDATES_PER_QUERY: usize = 2;
+
+/// Cell size of the expectation check (pixels): 32 × 24 cells on a 640 × 480 image.
+const EXPECTATION_CELL_PX: f64 = 20.0;
 
 impl StateMachine {
     pub(super) fn run_activity(
@@ -421,13 +426,13 @@ impl StateMachine {
         let kind = if into == from {
             PoolKind::Loop {
                 map: into,
-                correction: (&as_sim3(&acc.alignment)).into(),
+                correction: (&Sim3::from_isometry(&acc.alignment)).into(),
             }
         } else {
             PoolKind::Merge {
                 into,
                 from,
-                alignment: (&as_sim3(&acc.alignment)).into(),
+                alignment: (&Sim3::from_isometry(&acc.alignment)).into(),
             }
         };
         let pool = self.atlas.begin_pool(kind, m.frame, m.t);
@@ -437,7 +442,10 @@ impl StateMachine {
         self.atlas.add_edges(pool, edges);
         self.pool_frames.push((pool, acc.members[0].frame));
         if into != from {
-            if let Err(e) = self.atlas.merge(into, from, &as_sim3(&acc.alignment)) {
+            if let Err(e) = self
+                .atlas
+                .merge(into, from, &Sim3::from_isometry(&acc.alignment))
+            {
                 tracing::warn!("merge failed: {e}");
                 return;
             }
@@ -535,12 +543,19 @@ impl StateMachine {
             self.tracker.lose();
             return None;
         }
+        // Expectation: where the map predicts structure, the camera must see it.
+        let e = global_optimizer::expectation(&self.geo, map, m, &track, EXPECTATION_CELL_PX);
         let pose = self.tracked(cur, &track, m);
-        // Expectation: map points predicted visible must be re-observed.
-        let visible = track.visible.len();
-        let ratio = track.n_inliers as f64 / visible.max(1) as f64;
+        let ratio = e.ratio();
+        tracing::debug!(
+            "frame {}: expectation {} of {} cells ({:.2})",
+            m.frame,
+            e.confirmed_cells,
+            e.expected_cells,
+            ratio
+        );
         let c = &self.cfg.controller;
-        if visible >= c.min_expected_points as usize && ratio < c.min_expectation_ratio {
+        if e.expected_cells >= c.min_expected_cells as usize && ratio < c.min_expectation_ratio {
             self.expectation_failures += 1;
         } else {
             self.expectation_failures = 0;
@@ -549,10 +564,10 @@ impl StateMachine {
         if !self.flags.consistent_map {
             self.suspects.clear();
             tracing::info!(
-                "frame {}: {} of {} predicted points re-observed for {} frames: the map contradicts the camera",
+                "frame {}: {} of {} image cells where the map predicts points re-observed, for {} frames: the map contradicts the camera",
                 m.frame,
-                track.n_inliers,
-                visible,
+                e.confirmed_cells,
+                e.expected_cells,
                 self.expectation_failures
             );
         }
@@ -604,13 +619,13 @@ impl StateMachine {
                         from,
                         alignment,
                     } => {
-                        let s: crate::geometry::Sim3 = alignment.into();
-                        self.reloc_pool.refuse(*from, *into, sim3_to_iso(&s));
-                        self.loop_pool.refuse(*from, *into, sim3_to_iso(&s));
+                        let s: Sim3 = alignment.into();
+                        self.reloc_pool.refuse(*from, *into, s.to_isometry());
+                        self.loop_pool.refuse(*from, *into, s.to_isometry());
                     }
                     PoolKind::Loop { map, correction } => {
-                        let s: crate::geometry::Sim3 = correction.into();
-                        self.loop_pool.refuse(*map, *map, sim3_to_iso(&s));
+                        let s: Sim3 = correction.into();
+                        self.loop_pool.refuse(*map, *map, s.to_isometry());
                     }
                 }
                 if let Some((_, f)) = self.pool_frames.iter().find(|(q, _)| *q == u.pool) {
@@ -748,28 +763,44 @@ impl StateMachine {
         }
     }
 }
-fn sim3_to_iso(s: &crate::geometry::Sim3) -> Isometry3<f64> {
-    Isometry3::from_parts(
-        nalgebra::Translation3::from(s.translation),
-        nalgebra::UnitQuaternion::from_rotation_matrix(&s.rotation),
-    )
-}
-
-/// What the global optimizer reported.
-#[derive(Debug, Clone, Default)]
-pub struct GlobalReport {
-    pub consistent: bool,
-    pub offending_pools: Vec<PoolId>,
-}
-
 impl StateMachine {
-    /// Global optimisation of map `map` with its closure edges, and the consistency check.
+    /// The global optimizer on map `map` with its standing closure edges; a full BA follows
+    /// when the map is consistent (and the config asks for it).
     pub(super) fn global_optimization(&mut self, map: MapId) -> GlobalReport {
-        // TEMPORARY until the pose-graph optimizer lands (branch pgo).
-        let _ = map;
-        GlobalReport {
-            consistent: true,
-            offending_pools: Vec::new(),
+        let closures = self.atlas.closure_edges(map);
+        let Some(m) = self.atlas.maps.get_mut(&map) else {
+            return GlobalReport {
+                consistent: true,
+                ..Default::default()
+            };
+        };
+        let report =
+            global_optimizer::optimize_map(&self.cfg.loop_closing, m, &closures, &[], self.mono);
+        tracing::info!(
+            "global optimisation of map {map}: {} keyframes, {} odometry + {} closure edges, cost {:.1} -> {:.1} in {} iterations, max chi2/dof closure {:.2} odometry {:.2}: {}",
+            report.keyframes,
+            report.odometry_edges,
+            report.closure_edges,
+            report.initial_cost,
+            report.final_cost,
+            report.iterations,
+            report.max_closure_nchi2,
+            report.max_odometry_nchi2,
+            if report.consistent {
+                "consistent".to_string()
+            } else {
+                format!("INCONSISTENT, offending pools {:?}", report.offending_pools)
+            }
+        );
+        if report.consistent && self.cfg.loop_closing.full_ba_after_closure {
+            if let Some(r) = self.merger.global_ba(m) {
+                tracing::debug!(
+                    "full BA after closure: cost {:.1} -> {:.1}",
+                    r.initial_cost,
+                    r.final_cost
+                );
+            }
         }
+        report
     }
 }

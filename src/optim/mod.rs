@@ -1,5 +1,5 @@
 //! Non-linear least squares for the back end: pose-only refinement (tracker), local bundle
-//! adjustment (map merger) and, later, pose-graph optimisation (global optimizer).
+//! adjustment (map merger) and pose-graph optimisation (global optimizer).
 //!
 //! Conventions shared by every submodule:
 //! - poses are `Isometry3<f64>` **world-to-camera** (`T_cw`); camera axes x right, y down,
@@ -11,6 +11,7 @@
 //!   see [`reprojection`].
 
 pub mod local_ba;
+pub mod pose_graph;
 pub mod pose_only;
 pub mod reprojection;
 pub mod se3;
