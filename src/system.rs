@@ -175,9 +175,8 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
                 relative.retain(|r| r.0 < from);
                 poses_discarded += before - relative.len();
             }
-            if let Some((pose_cw, map, kf)) = out.pose {
-                let kf_pose = machine.atlas.maps[&map].keyframes[&kf].pose_cw;
-                relative.push((frame.index, frame.t, kf, pose_cw * kf_pose.inverse()));
+            if let Some((rel, _, kf)) = out.pose {
+                relative.push((frame.index, frame.t, kf, rel));
             }
             if states.is_empty() && out.transitions.is_empty() {
                 states.push(StateRow {

@@ -17,7 +17,9 @@ use crate::tracker::TrackResult;
 use nalgebra::Isometry3;
 use std::collections::BTreeSet;
 
-/// A frame's pose with its map and reference keyframe.
+/// A tracked frame: its pose relative to its reference keyframe (`T_cw · T_kw⁻¹`, taken when
+/// the frame was tracked, so that it follows the keyframe through every later optimisation),
+/// the map and the keyframe.
 pub type Pose = (Isometry3<f64>, MapId, KfId);
 
 /// Candidates validated per query (best scores first): geometry costs a few milliseconds each.
@@ -134,7 +136,7 @@ impl StateMachine {
             .or(self.tracker.reference_kf)
             .or_else(|| map.keyframes.keys().next_back().copied())
             .expect("a map has a keyframe");
-        (track.pose_cw, cur, kf)
+        (track.pose_cw * map.keyframes[&kf].pose_cw.inverse(), cur, kf)
     }
 
     /// Core: region Mapping (tracker, map merger, loop closing on the current map) and region
@@ -165,7 +167,7 @@ impl StateMachine {
             self.tracker.lose();
             return None;
         }
-        let pose = self.tracked(cur, &track, m);
+        let mut pose = self.tracked(cur, &track, m);
         let map = self.atlas.maps.get_mut(&cur).expect("current map exists");
         let mut new_kf = None;
         if self.merger.need_keyframe(map, m, &track, true) {
@@ -183,6 +185,8 @@ impl StateMachine {
             );
             self.tracker.reference_kf = Some(r.keyframe);
             new_kf = Some(r.keyframe);
+            // The frame is that keyframe: it follows the keyframe's refined pose exactly.
+            pose = (Isometry3::identity(), cur, r.keyframe);
         }
         if let Some(kf) = new_kf {
             if self.cfg.loop_closing.enabled {

@@ -34,7 +34,8 @@ pub struct StepOutput {
     /// Transitions taken during the step, in order.
     pub transitions: Vec<TransitionTaken>,
     pub flags: Flags,
-    /// World-to-camera pose when the frame was tracked, with its map and reference keyframe.
+    /// When the frame was tracked: its pose relative to its reference keyframe
+    /// (`T_cw · T_kw⁻¹`), the map and the keyframe.
     pub pose: Option<(Isometry3<f64>, MapId, KfId)>,
     /// Frames from this index on were tracked on a map that a rollback just discarded.
     pub invalidated_from: Option<usize>,
