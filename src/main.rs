@@ -121,12 +121,16 @@ struct RunArgs {
 
 #[derive(Args)]
 struct EvalArgs {
-    /// Ground truth, TUM format.
+    /// Ground truth, TUM format (default with --run: the run's sequence's groundtruth.txt).
     #[arg(long)]
-    gt: PathBuf,
-    /// Estimate, TUM format.
+    gt: Option<PathBuf>,
+    /// Estimate, TUM format (default with --run: OUTDIR/trajectory.txt).
     #[arg(long)]
-    est: PathBuf,
+    est: Option<PathBuf>,
+    /// A `homing run` output folder: also judge its closures (wrong: > 0.3 m or > 10° from
+    /// the ground truth's relative pose) and report the ATE of each map and of the largest.
+    #[arg(long, value_name = "OUTDIR")]
+    run: Option<PathBuf>,
     /// Alignment before ATE: se3 (RGB-D), sim3 (monocular) or none.
     #[arg(long, value_enum, default_value = "se3")]
     align: Alignment,
@@ -219,21 +223,42 @@ fn cmd_run(a: RunArgs) -> Result<()> {
     Ok(())
 }
 
-fn cmd_eval(a: EvalArgs) -> Result<()> {
-    let gt = read_trajectory(&a.gt)?;
-    let est = read_trajectory(&a.est)?;
+fn cmd_eval(mut a: EvalArgs) -> Result<()> {
+    if let Some(run) = &a.run {
+        if a.est.is_none() {
+            a.est = Some(run.join("trajectory.txt"));
+        }
+        if a.gt.is_none() {
+            a.gt = run_sequence(run)?.map(|d| d.join("groundtruth.txt"));
+        }
+    }
+    let (Some(gt_path), Some(est_path)) = (a.gt.clone(), a.est.clone()) else {
+        bail!("give --gt and --est, or --run OUTDIR (whose summary.json names the sequence)");
+    };
+    let gt = read_trajectory(&gt_path)?;
+    let est = read_trajectory(&est_path)?;
     if gt.is_empty() {
-        bail!("{}: holds no poses", a.gt.display());
+        bail!("{}: holds no poses", gt_path.display());
     }
     if est.is_empty() {
-        bail!("{}: holds no poses", a.est.display());
+        bail!("{}: holds no poses", est_path.display());
     }
+    let run_eval = match &a.run {
+        Some(run) => {
+            let closures = homing::output::read_closures(&run.join("closures.csv"))?;
+            let maps = homing::output::read_state_maps(&run.join("states.csv"))?;
+            let check = eval::run::check_closures(&closures, &gt, a.max_dt);
+            let (per_map, largest) = eval::run::per_map_ate(&gt, &est, &maps, a.align, a.max_dt);
+            Some((check, per_map, largest))
+        }
+        None => None,
+    };
     let assoc = eval::associate_and_align(&gt, &est, a.align, a.max_dt)?;
     let ate = eval::ate(&assoc, a.align);
     let rpe = eval::rpe(&assoc, a.rpe_delta, a.rpe_unit, a.all_pairs);
     let coverage = coverage_for(&a, &gt, &est)?;
     if let Some(p) = &a.plot {
-        let title = format!("{} vs {}", a.est.display(), a.gt.display());
+        let title = format!("{} vs {}", est_path.display(), gt_path.display());
         eval::plot::plot_ate(p, &gt, &assoc, &ate, &title)?;
     }
     if a.json {
@@ -244,6 +269,9 @@ fn cmd_eval(a: EvalArgs) -> Result<()> {
             "coverage": coverage,
             "estimate_poses": est.len(),
             "groundtruth_poses": gt.len(),
+            "closures": run_eval.as_ref().map(|r| &r.0),
+            "maps": run_eval.as_ref().map(|r| &r.1),
+            "largest_map": run_eval.as_ref().and_then(|r| r.2),
         });
         println!("{}", serde_json::to_string_pretty(&v)?);
         return Ok(());
@@ -276,7 +304,56 @@ fn cmd_eval(a: EvalArgs) -> Result<()> {
         Some(c) => println!("coverage {:.2} %", 100.0 * c),
         None => println!("coverage: unknown (pass --sequence DIR)"),
     }
+    if let Some((c, per_map, largest)) = &run_eval {
+        println!(
+            "closures: {} candidates ({} wrong); accepted {} ({} wrong{}), rolled back {} ({} wrong), rejected {} ({} wrong), expired {} ({} wrong)",
+            c.candidates,
+            c.candidates_wrong,
+            c.accepted,
+            c.accepted_wrong,
+            if c.accepted_wrong_frames.is_empty() {
+                String::new()
+            } else {
+                format!(": frames {:?}", c.accepted_wrong_frames)
+            },
+            c.rolled_back,
+            c.rolled_back_wrong,
+            c.rejected,
+            c.rejected_wrong,
+            c.expired,
+            c.expired_wrong
+        );
+        for m in per_map {
+            println!(
+                "map {}{}: {} poses, ATE rmse {}",
+                m.map,
+                if Some(m.map) == *largest {
+                    " (largest)"
+                } else {
+                    ""
+                },
+                m.poses,
+                m.ate_rmse_m
+                    .map_or("n/a (too few poses)".into(), |r| format!("{r:.6} m"))
+            );
+        }
+    }
     Ok(())
+}
+
+/// The sequence folder a run's summary.json names.
+fn run_sequence(run: &std::path::Path) -> Result<Option<PathBuf>> {
+    let summary = run.join("summary.json");
+    if !summary.is_file() {
+        return Ok(None);
+    }
+    let text = std::fs::read_to_string(&summary)
+        .with_context(|| format!("{}: cannot read", summary.display()))?;
+    let v: serde_json::Value = serde_json::from_str(&text)
+        .with_context(|| format!("{}: not valid JSON", summary.display()))?;
+    Ok(v.get("sequence")
+        .and_then(|s| s.as_str())
+        .map(PathBuf::from))
 }
 
 /// Coverage needs the frames the estimate could have had: from --sequence, or from the
@@ -286,22 +363,10 @@ fn coverage_for(
     gt: &[homing::io::tum::StampedPose],
     est: &[homing::io::tum::StampedPose],
 ) -> Result<Option<f64>> {
-    let seq_dir = match &a.sequence {
-        Some(d) => Some(d.clone()),
-        None => {
-            let summary = a.est.with_file_name("summary.json");
-            if summary.is_file() {
-                let text = std::fs::read_to_string(&summary)
-                    .with_context(|| format!("{}: cannot read", summary.display()))?;
-                let v: serde_json::Value = serde_json::from_str(&text)
-                    .with_context(|| format!("{}: not valid JSON", summary.display()))?;
-                v.get("sequence")
-                    .and_then(|s| s.as_str())
-                    .map(PathBuf::from)
-            } else {
-                None
-            }
-        }
+    let seq_dir = match (&a.sequence, &a.est) {
+        (Some(d), _) => Some(d.clone()),
+        (None, Some(est)) => run_sequence(est.parent().unwrap_or(std::path::Path::new(".")))?,
+        (None, None) => None,
     };
     let Some(dir) = seq_dir else { return Ok(None) };
     let rgb = dir.join("rgb.txt");

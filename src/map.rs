@@ -183,13 +183,63 @@ impl Map {
             .sum()
     }
 
-    pub fn observe(&mut self, kf: KfId, kp: usize, point: PointId) {
-        if let Some(p) = self.points.get_mut(&point) {
-            p.observations.insert(kf, kp);
-            if let Some(k) = self.keyframes.get_mut(&kf) {
-                k.points[kp] = Some(point);
+    /// Records that keypoint `kp` of keyframe `kf` sees `point`. A point is seen at most once
+    /// per keyframe: when `kf` already sees it through another keypoint, nothing changes and
+    /// false is returned.
+    pub fn observe(&mut self, kf: KfId, kp: usize, point: PointId) -> bool {
+        let Some(p) = self.points.get_mut(&point) else {
+            return false;
+        };
+        if p.observations.get(&kf).is_some_and(|&k| k != kp) {
+            return false;
+        }
+        let Some(k) = self.keyframes.get_mut(&kf) else {
+            return false;
+        };
+        if let Some(old) = k.points[kp].filter(|&o| o != point) {
+            if let Some(o) = self.points.get_mut(&old) {
+                o.observations.remove(&kf);
             }
         }
+        k.points[kp] = Some(point);
+        if let Some(p) = self.points.get_mut(&point) {
+            p.observations.insert(kf, kp);
+        }
+        true
+    }
+
+    /// Checks that keyframes and points reference each other consistently (for tests and
+    /// after loading a saved atlas).
+    pub fn check_links(&self) -> std::result::Result<(), String> {
+        for (kid, k) in &self.keyframes {
+            for (i, p) in k.points.iter().enumerate() {
+                let Some(p) = p else { continue };
+                match self.points.get(p) {
+                    None => return Err(format!("keyframe {kid} keypoint {i}: point {p} missing")),
+                    Some(mp) if mp.observations.get(kid) != Some(&i) => {
+                        return Err(format!(
+                            "keyframe {kid} keypoint {i} sees point {p}, which does not list it"
+                        ));
+                    }
+                    _ => {}
+                }
+            }
+        }
+        for (pid, p) in &self.points {
+            for (kid, &i) in &p.observations {
+                let ok = self
+                    .keyframes
+                    .get(kid)
+                    .and_then(|k| k.points.get(i))
+                    .is_some_and(|x| *x == Some(*pid));
+                if !ok {
+                    return Err(format!(
+                        "point {pid} lists keyframe {kid} keypoint {i}, which does not see it"
+                    ));
+                }
+            }
+        }
+        Ok(())
     }
 
     /// Removes a point and its observations.

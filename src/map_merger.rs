@@ -268,9 +268,8 @@ impl MapMerger {
         };
         for (i, p) in track.matches.iter().enumerate() {
             if let Some(p) = p {
-                if map.points.contains_key(p) {
-                    map.observe(kf, i, *p);
-                }
+                // A point claimed by two keypoints keeps the first.
+                map.observe(kf, i, *p);
             }
         }
         // New points from depth for unmatched keypoints closer than the depth limit, each from
@@ -395,8 +394,9 @@ impl MapMerger {
                 }
                 Some(_) => {}
                 None => {
-                    map.observe(kf, i, pid);
-                    fused += 1;
+                    if map.observe(kf, i, pid) {
+                        fused += 1;
+                    }
                 }
             }
         }

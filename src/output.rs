@@ -65,8 +65,8 @@ pub struct ClosureRow {
     pub map_match: u32,
     pub matched_kf: u32,
     /// Pose of the query camera in the matched keyframe's camera frame (`T_match · T_query⁻¹`,
-    /// world-to-camera poses).
-    pub relative: Isometry3<f64>,
+    /// world-to-camera poses), when the validator got as far as a pose.
+    pub relative: Option<Isometry3<f64>>,
     pub inliers: u32,
     /// `accepted`, `rolled-back`, `expired` (valid, but no pool formed), or `rejected:<reason>`.
     pub verdict: String,
@@ -249,15 +249,23 @@ impl RunOutputs {
     }
 
     pub fn write_closures(&self, rows: &[ClosureRow]) -> Result<()> {
-        let mut s = String::from(
-            "frame,kind,t_query,t_match,map_query,map_match,matched_kf,tx,ty,tz,qx,qy,qz,qw,inliers,verdict,pool\n",
-        );
+        let mut s = String::from(CLOSURES_HEADER);
+        s.push('\n');
         for r in rows {
-            let t = r.relative.translation.vector;
-            let q = r.relative.rotation.quaternion().coords;
+            let pose = match &r.relative {
+                Some(rel) => {
+                    let t = rel.translation.vector;
+                    let q = rel.rotation.quaternion().coords;
+                    format!(
+                        "{:.6},{:.6},{:.6},{:.9},{:.9},{:.9},{:.9}",
+                        t.x, t.y, t.z, q.x, q.y, q.z, q.w
+                    )
+                }
+                None => ",,,,,,".into(),
+            };
             let _ = writeln!(
                 s,
-                "{},{},{:.6},{:.6},{},{},{},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{},{},{}",
+                "{},{},{:.6},{:.6},{},{},{},{},{},{},{}",
                 r.frame,
                 r.kind,
                 r.t_query,
@@ -265,13 +273,7 @@ impl RunOutputs {
                 r.map_query,
                 r.map_match,
                 r.matched_kf,
-                t.x,
-                t.y,
-                t.z,
-                q.x,
-                q.y,
-                q.z,
-                q.w,
+                pose,
                 r.inliers,
                 r.verdict,
                 r.pool.map_or(String::new(), |p| p.to_string())
@@ -305,4 +307,109 @@ pub fn describe_camera(cam: &CameraConfig, src: &CameraSource) -> String {
         cam.cy,
         cam.depth_scale
     )
+}
+
+const CLOSURES_HEADER: &str = "frame,kind,t_query,t_match,map_query,map_match,matched_kf,tx,ty,tz,qx,qy,qz,qw,inliers,verdict,pool";
+
+/// Reads a run's `closures.csv` back (for `homing eval --run`).
+pub fn read_closures(path: &Path) -> Result<Vec<ClosureRow>> {
+    let text = crate::error::read_text(path)?;
+    let mut rows = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        let n = i + 1;
+        if i == 0 {
+            if line.trim() != CLOSURES_HEADER {
+                return Err(Error::parse(
+                    path,
+                    n,
+                    "not a homing closures.csv (unexpected header)",
+                ));
+            }
+            continue;
+        }
+        if line.trim().is_empty() {
+            continue;
+        }
+        let f: Vec<&str> = line.split(',').collect();
+        if f.len() != 17 {
+            return Err(Error::parse(
+                path,
+                n,
+                format!("expected 17 comma-separated fields, found {}", f.len()),
+            ));
+        }
+        let num = |k: usize, what: &str| -> Result<f64> {
+            f[k].trim()
+                .parse::<f64>()
+                .map_err(|_| Error::parse(path, n, format!("{what}: not a number: {:?}", f[k])))
+        };
+        let int = |k: usize, what: &str| -> Result<u64> {
+            f[k].trim()
+                .parse::<u64>()
+                .map_err(|_| Error::parse(path, n, format!("{what}: not an integer: {:?}", f[k])))
+        };
+        let relative = if f[7..14].iter().all(|x| x.trim().is_empty()) {
+            None
+        } else {
+            let v: Vec<f64> = (7..14)
+                .map(|k| num(k, "pose"))
+                .collect::<Result<Vec<f64>>>()?;
+            let q = nalgebra::Quaternion::new(v[6], v[3], v[4], v[5]);
+            if (q.norm() - 1.0).abs() > 1e-3 {
+                return Err(Error::parse(path, n, "quaternion is not unit length"));
+            }
+            Some(Isometry3::from_parts(
+                nalgebra::Translation3::new(v[0], v[1], v[2]),
+                nalgebra::UnitQuaternion::from_quaternion(q),
+            ))
+        };
+        rows.push(ClosureRow {
+            frame: int(0, "frame")? as usize,
+            kind: f[1].trim().to_string(),
+            t_query: num(2, "t_query")?,
+            t_match: num(3, "t_match")?,
+            map_query: int(4, "map_query")? as u32,
+            map_match: int(5, "map_match")? as u32,
+            matched_kf: int(6, "matched_kf")? as u32,
+            relative,
+            inliers: int(14, "inliers")? as u32,
+            verdict: f[15].trim().to_string(),
+            pool: if f[16].trim().is_empty() {
+                None
+            } else {
+                Some(int(16, "pool")? as u32)
+            },
+        });
+    }
+    Ok(rows)
+}
+
+/// Reads the map of each frame with a pose from a run's `states.csv`: `(timestamp, map)`.
+pub fn read_state_maps(path: &Path) -> Result<Vec<(f64, u32)>> {
+    let text = crate::error::read_text(path)?;
+    let mut out = Vec::new();
+    for (i, line) in text.lines().enumerate().skip(1) {
+        let f: Vec<&str> = line.split(',').collect();
+        if f.len() < 10 {
+            return Err(Error::parse(
+                path,
+                i + 1,
+                "expected 10 comma-separated fields",
+            ));
+        }
+        if f[9].trim().is_empty() {
+            continue;
+        }
+        let t = f[1]
+            .parse::<f64>()
+            .map_err(|_| Error::parse(path, i + 1, "timestamp: not a number"))?;
+        let m = f[9]
+            .trim()
+            .parse::<u32>()
+            .map_err(|_| Error::parse(path, i + 1, "map: not an integer"))?;
+        if out.last().is_none_or(|&(lt, _)| lt != t) {
+            out.push((t, m));
+        }
+    }
+    Ok(out)
 }

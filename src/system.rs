@@ -258,12 +258,14 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
         .collect();
     let mut frame_map: std::collections::BTreeMap<usize, u32> = std::collections::BTreeMap::new();
     let mut trajectory: Vec<StampedPose> = Vec::with_capacity(relative.len());
+    let mut pose_maps: Vec<(f64, u32)> = Vec::with_capacity(relative.len());
     for (frame, t, kf, rel) in &relative {
         let Some((map, kf_pose)) = kf_map.get(kf) else {
             poses_discarded += 1;
             continue;
         };
         frame_map.insert(*frame, *map);
+        pose_maps.push((*t, *map));
         trajectory.push(StampedPose {
             t: *t,
             pose: (rel * kf_pose).inverse(),
@@ -306,7 +308,7 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
         .collect();
 
     let evaluation = if opts.eval {
-        evaluate(&seq, &trajectory, &spec)?
+        evaluate(&seq, &trajectory, &spec, &closures, &pose_maps)?
     } else {
         None
     };
@@ -375,6 +377,8 @@ fn evaluate(
     seq: &TumSequence,
     est: &[StampedPose],
     spec: &PerturbationSpec,
+    closures: &[ClosureRow],
+    pose_maps: &[(f64, u32)],
 ) -> Result<Option<serde_json::Value>> {
     let Some(gt) = seq.groundtruth()? else {
         return Ok(Some(
@@ -398,7 +402,17 @@ fn evaluate(
     let assoc = eval::associate_and_align(&gt, est, align, 0.02)?;
     let ate = eval::ate(&assoc, align);
     let rpe = eval::rpe(&assoc, 1.0, RpeUnit::Seconds, false).ok();
-    serde_json::to_value(serde_json::json!({"ate": ate, "rpe": rpe, "coverage": coverage}))
-        .map(Some)
-        .map_err(|e| Error::invalid(e.to_string()))
+    let closures = eval::run::check_closures(closures, &gt, 0.02);
+    let (maps, largest) = eval::run::per_map_ate(&gt, est, pose_maps, align, 0.02);
+    let largest_map = largest.and_then(|l| maps.iter().find(|m| m.map == l));
+    serde_json::to_value(serde_json::json!({
+        "ate": ate,
+        "rpe": rpe,
+        "coverage": coverage,
+        "closures": closures,
+        "maps": maps,
+        "largest_map": largest_map,
+    }))
+    .map(Some)
+    .map_err(|e| Error::invalid(e.to_string()))
 }

@@ -136,7 +136,11 @@ impl StateMachine {
             .or(self.tracker.reference_kf)
             .or_else(|| map.keyframes.keys().next_back().copied())
             .expect("a map has a keyframe");
-        (track.pose_cw * map.keyframes[&kf].pose_cw.inverse(), cur, kf)
+        (
+            track.pose_cw * map.keyframes[&kf].pose_cw.inverse(),
+            cur,
+            kf,
+        )
     }
 
     /// Core: region Mapping (tracker, map merger, loop closing on the current map) and region
@@ -367,8 +371,8 @@ impl StateMachine {
             .map_or(f64::NAN, |k| k.t);
         // Pose of the query camera relative to the matched keyframe's camera.
         let rel = match (pose_in_match, self.atlas.maps.get(&match_map)) {
-            (Some(p), Some(mm)) => relative(&mm.keyframes[&matched].pose_cw, &p),
-            _ => Isometry3::identity(),
+            (Some(p), Some(mm)) => Some(relative(&mm.keyframes[&matched].pose_cw, &p)),
+            _ => None,
         };
         self.closures.push(ClosureRow {
             frame: m.frame,
@@ -524,8 +528,9 @@ impl StateMachine {
                         fused += 1;
                     }
                     None => {
-                        map.observe(q, i, *target);
-                        fused += 1;
+                        if map.observe(q, i, *target) {
+                            fused += 1;
+                        }
                     }
                     _ => {}
                 }
