@@ -470,6 +470,8 @@ impl Atlas {
         atlas.refresh_high_water();
         for m in atlas.maps.values_mut() {
             m.rebuild_after_load();
+            m.check_links()
+                .map_err(|e| Error::file(path, format!("corrupt atlas file: map {}: {e}", m.id)))?;
         }
         Ok(atlas)
     }

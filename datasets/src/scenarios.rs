@@ -384,7 +384,7 @@ pub fn aliasing(seed: u64) -> Scenario {
         motion: s("hand-held (walking, 1.35 m)"),
         scene: sc,
         sessions: vec![session],
-        small_stride: 4,
+        small_stride: 2,
     }
 }
 

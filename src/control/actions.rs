@@ -448,7 +448,7 @@ impl StateMachine {
             e.pool = pool;
         }
         self.atlas.add_edges(pool, edges);
-        self.pool_frames.push((pool, acc.members[0].frame));
+        self.pool_frames.push((pool, m.frame));
         if into != from {
             if let Err(e) = self
                 .atlas
