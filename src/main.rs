@@ -42,6 +42,23 @@ enum Cmd {
     /// Example: homing bench tracking --sequence data/rgbd_dataset_freiburg1_xyz --out out/bench
     #[command(subcommand)]
     Bench(BenchCmd),
+    /// Print a modal controller's state machine as Graphviz DOT (the tables the run follows).
+    ///
+    /// Example: homing states --dot --controller ours --out ours.dot --png ours.png
+    States {
+        /// Write DOT (the only format so far; the flag is kept for clarity).
+        #[arg(long)]
+        dot: bool,
+        /// Which machine.
+        #[arg(long, value_enum, default_value = "ours")]
+        controller: ControllerKind,
+        /// Write the DOT here instead of standard output.
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Also render a PNG with Graphviz's `dot` (when installed).
+        #[arg(long)]
+        png: Option<PathBuf>,
+    },
     /// Print the default configuration, or check a config file and print it resolved.
     ///
     /// Example: homing config --check my.toml
@@ -177,6 +194,12 @@ fn main() {
         Cmd::Run(a) => cmd_run(a),
         Cmd::Eval(a) => cmd_eval(a),
         Cmd::Config { check } => cmd_config(check),
+        Cmd::States {
+            dot: _,
+            controller,
+            out,
+            png,
+        } => cmd_states(controller, out, png),
         Cmd::Bench(BenchCmd::Tracking {
             sequence,
             config,
@@ -389,6 +412,34 @@ fn cmd_config(check: Option<PathBuf>) -> Result<()> {
     print!("{}", toml::to_string(&cfg)?);
     if let Some(p) = check {
         eprintln!("{}: valid", p.display());
+    }
+    Ok(())
+}
+
+fn cmd_states(kind: ControllerKind, out: Option<PathBuf>, png: Option<PathBuf>) -> Result<()> {
+    let dot = homing::control::MachineSpec::for_kind(kind).to_dot();
+    match &out {
+        Some(p) => homing::io::atomic_write(p, dot.as_bytes())?,
+        None => print!("{dot}"),
+    }
+    if let Some(png) = png {
+        use std::io::Write as _;
+        let mut child = std::process::Command::new("dot")
+            .args(["-Tpng", "-o"])
+            .arg(&png)
+            .stdin(std::process::Stdio::piped())
+            .spawn()
+            .context("cannot run Graphviz 'dot' (install graphviz for --png)")?;
+        child
+            .stdin
+            .take()
+            .context("dot: no stdin")?
+            .write_all(dot.as_bytes())?;
+        let status = child.wait()?;
+        if !status.success() {
+            bail!("dot failed ({status}) writing {}", png.display());
+        }
+        eprintln!("wrote {}", png.display());
     }
     Ok(())
 }

@@ -204,7 +204,7 @@ impl MachineSpec {
         let fin = self.state(State::Final);
         let _ = writeln!(
             s,
-            "  Final [shape=doublecircle, label=\"Final\\nentry / {}\"];",
+            "  Final [shape=box, style=rounded, peripheries=2, label=\"Final\\nentry / {}\"];",
             fin.entry
         );
         let _ = writeln!(s, "  start -> Init;");
