@@ -198,6 +198,9 @@ pub struct LoopClosingConfig {
     /// between two connected keyframes.
     pub odometry_sigma_m: f64,
     pub odometry_sigma_deg: f64,
+    /// ... plus this much per metre between the two keyframes.
+    pub odometry_sigma_per_m: f64,
+    pub odometry_sigma_deg_per_m: f64,
     /// Floor on a closure edge's uncertainty, added to the validator's estimate.
     pub closure_min_sigma_m: f64,
     pub closure_min_sigma_deg: f64,
@@ -205,6 +208,9 @@ pub struct LoopClosingConfig {
     pub essential_min_covisibility: u32,
     /// Full bundle adjustment after a consistent global optimisation.
     pub full_ba_after_closure: bool,
+    /// Ours, in Mapping: keyframes of the current map at least this old (seconds) are "known
+    /// places" that frames are recognised in (younger ones are the local map being built).
+    pub known_place_min_age_s: f64,
 }
 
 impl Default for LoopClosingConfig {
@@ -233,10 +239,13 @@ impl Default for LoopClosingConfig {
             dcs_phi: 12.59,
             odometry_sigma_m: 0.01,
             odometry_sigma_deg: 0.5,
+            odometry_sigma_per_m: 0.05,
+            odometry_sigma_deg_per_m: 2.0,
             closure_min_sigma_m: 0.005,
             closure_min_sigma_deg: 0.25,
             essential_min_covisibility: 100,
             full_ba_after_closure: true,
+            known_place_min_age_s: 5.0,
         }
     }
 }
@@ -274,11 +283,21 @@ pub struct ControllerConfig {
     /// Share of the image cells where the map predicts points that must be re-observed in
     /// Localized.
     pub min_expectation_ratio: f64,
+    /// With depth: share of the predicted points judged by depth that the camera sees clearly
+    /// behind their predicted place, above which a frame fails the expectation check.
+    pub max_contradiction: f64,
     /// Consecutive failing frames before Localized declares the map corrupted.
     pub corrupted_after_frames: u32,
     /// The expectation check needs at least this many image cells (20 px) where the map
     /// predicts points to judge.
     pub min_expected_cells: u32,
+    /// Localized is left for Core when, for `left_after_frames` frames running, less than this
+    /// share of the image cells holding keypoints are cells where the map predicts points.
+    pub min_known_coverage: f64,
+    /// ... or, at once, when the tracker keeps fewer inliers than this (the map no longer
+    /// holds it well: mapping must resume before tracking fails).
+    pub min_localized_inliers: u32,
+    pub left_after_frames: u32,
     /// Idle re-tracks in the current map when the last tracked frame is at most this old
     /// (seconds); after a longer loss a new map is started.
     pub reacquire_gap_s: f64,
@@ -289,8 +308,12 @@ impl Default for ControllerConfig {
         Self {
             kind: ControllerKind::Ours,
             min_expectation_ratio: 0.3,
+            max_contradiction: 0.3,
             corrupted_after_frames: 5,
             min_expected_cells: 30,
+            min_known_coverage: 0.5,
+            min_localized_inliers: 100,
+            left_after_frames: 3,
             reacquire_gap_s: 0.5,
         }
     }
@@ -557,6 +580,18 @@ impl Config {
         c.pos("loop_closing.dcs_phi", l.dcs_phi);
         c.pos("loop_closing.odometry_sigma_m", l.odometry_sigma_m);
         c.pos("loop_closing.odometry_sigma_deg", l.odometry_sigma_deg);
+        c.range(
+            "loop_closing.odometry_sigma_per_m",
+            l.odometry_sigma_per_m,
+            0.0,
+            10.0,
+        );
+        c.range(
+            "loop_closing.odometry_sigma_deg_per_m",
+            l.odometry_sigma_deg_per_m,
+            0.0,
+            180.0,
+        );
         c.pos("loop_closing.closure_min_sigma_m", l.closure_min_sigma_m);
         c.pos(
             "loop_closing.closure_min_sigma_deg",
@@ -588,6 +623,30 @@ impl Config {
             100000.0,
         );
         c.range("controller.reacquire_gap_s", k.reacquire_gap_s, 0.0, 3600.0);
+        c.range(
+            "controller.min_known_coverage",
+            k.min_known_coverage,
+            0.0,
+            1.0,
+        );
+        c.range(
+            "controller.max_contradiction",
+            k.max_contradiction,
+            0.0,
+            1.0,
+        );
+        c.range(
+            "controller.min_localized_inliers",
+            k.min_localized_inliers as f64,
+            0.0,
+            100000.0,
+        );
+        c.range(
+            "controller.left_after_frames",
+            k.left_after_frames as f64,
+            1.0,
+            100000.0,
+        );
         c.first.map_or(Ok(()), Err)
     }
 }

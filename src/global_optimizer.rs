@@ -9,7 +9,8 @@
 //! every keyframe takes its new pose and every map point moves rigidly with its reference
 //! keyframe.
 //!
-//! Consistency: with the edges' information calibrated (odometry σ from the config, closure
+//! Consistency: with the edges' information calibrated (odometry σ growing with the distance
+//! between the keyframes, closure
 //! information from the validator with a floor), each edge's χ²/dof should be about 1. A
 //! closure whose χ²/dof stays above `max_normalized_chi2` after the robust optimisation is
 //! contradicted by the rest of the map — DCS switched it down instead of letting it bend the
@@ -42,10 +43,12 @@ pub struct GlobalReport {
     pub max_odometry_nchi2: f64,
 }
 
-/// The odometry information of the config's per-edge σ, (ω, υ) order.
-pub fn odometry_information(cfg: &LoopClosingConfig) -> Matrix6<f64> {
-    let wr = 1.0 / cfg.odometry_sigma_deg.to_radians().powi(2);
-    let wt = 1.0 / cfg.odometry_sigma_m.powi(2);
+/// The odometry information of an edge whose keyframes are `length` metres apart, (ω, υ)
+/// order: tracking drift grows with the distance travelled, so σ = base + rate · length.
+pub fn odometry_information(cfg: &LoopClosingConfig, length: f64) -> Matrix6<f64> {
+    let sr = (cfg.odometry_sigma_deg + cfg.odometry_sigma_deg_per_m * length).to_radians();
+    let st = cfg.odometry_sigma_m + cfg.odometry_sigma_per_m * length;
+    let (wr, wt) = (1.0 / (sr * sr), 1.0 / (st * st));
     Matrix6::from_diagonal(&nalgebra::Vector6::new(wr, wr, wr, wt, wt, wt))
 }
 
@@ -112,16 +115,17 @@ pub fn optimize_map(
     };
     // Scale drift per edge (monocular): as loose as the rotation, in log units.
     let scale_info = 1.0 / cfg.odometry_sigma_deg.to_radians().powi(2);
-    let odo_info = info7(&odometry_information(cfg), scale_info);
     for (a, b) in essential_edges(map, cfg.essential_min_covisibility) {
         let (ia, ib) = (index[&a], index[&b]);
+        let measurement = graph.nodes[ia]
+            .pose
+            .compose(&graph.nodes[ib].pose.inverse());
+        let length = measurement.translation.norm();
         graph.edges.push(PgEdge {
             i: ia,
             j: ib,
-            measurement: graph.nodes[ia]
-                .pose
-                .compose(&graph.nodes[ib].pose.inverse()),
-            information: odo_info,
+            measurement,
+            information: info7(&odometry_information(cfg, length), scale_info),
             robust: false,
         });
     }
@@ -238,17 +242,55 @@ fn apply(map: &mut Map, ids: &[KfId], before: &[Sim3], graph: &PoseGraph) {
 /// visible projects into it, and *confirmed* when an inlier keypoint lies in it. Counting cells
 /// rather than points keeps the measure fair where the map holds two copies of the same
 /// surface (before and after a loop closure fused them).
+///
+/// Cells also say whether the camera is still in mapped space: of the (coarser) cells where
+/// the frame has keypoints, the share where the map predicts points is its *coverage*.
+///
+/// With depth the check is sharper: a predicted point whose image neighbourhood shows keypoints
+/// at about its predicted depth is *confirmed by depth* (even when blur kept its descriptor from
+/// matching); one whose neighbours all lie clearly *behind* it is *contradicted* — the camera
+/// sees through where the map says a surface is. Nearer neighbours (occlusion) say nothing.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct Expectation {
     pub expected_cells: usize,
     pub confirmed_cells: usize,
+    pub depth_confirmed: usize,
+    pub depth_contradicted: usize,
+    /// Cells holding keypoints of the frame, and those of them the map predicts.
+    pub feature_cells: usize,
+    pub covered_cells: usize,
 }
 
 impl Expectation {
+    /// Share of the predicted cells that are re-observed.
     pub fn ratio(&self) -> f64 {
         self.confirmed_cells as f64 / self.expected_cells.max(1) as f64
     }
+
+    /// Share of what the camera sees that the map predicts.
+    pub fn coverage(&self) -> f64 {
+        self.covered_cells as f64 / self.feature_cells.max(1) as f64
+    }
+
+    /// Points judged by depth.
+    pub fn depth_judged(&self) -> usize {
+        self.depth_confirmed + self.depth_contradicted
+    }
+
+    /// Share of the points judged by depth that the camera contradicts.
+    pub fn contradiction(&self) -> f64 {
+        self.depth_contradicted as f64 / self.depth_judged().max(1) as f64
+    }
 }
+
+/// Depth tolerance of the expectation check at depth `z` (m): sensor noise plus the spread
+/// of keypoints around a projected point near depth edges.
+fn depth_tolerance(z: f64) -> f64 {
+    0.05 + 0.08 * z
+}
+
+/// Image radius (pixels) searched around a projected point for keypoints with depth.
+const DEPTH_SEARCH_PX: f64 = 6.0;
 
 pub fn expectation(
     geo: &crate::preprocess::ImageGeometry,
@@ -256,26 +298,61 @@ pub fn expectation(
     m: &crate::preprocess::Measurement,
     track: &crate::tracker::TrackResult,
     cell_px: f64,
+    coverage_cell_px: f64,
 ) -> Expectation {
-    let cell = |u: f64, v: f64| ((u / cell_px) as u32, (v / cell_px) as u32);
-    let expected: BTreeSet<(u32, u32)> = track
-        .visible
-        .iter()
-        .filter_map(|id| map.points.get(id))
-        .filter_map(|p| geo.project_in_image(&Map::in_camera(&track.pose_cw, &p.position)))
-        .map(|uv| cell(uv.x, uv.y))
-        .collect();
+    let cell = |uv: (f64, f64), px: f64| ((uv.0 / px) as u32, (uv.1 / px) as u32);
+    let mut predicted: Vec<(f64, f64)> = Vec::new();
+    let (mut depth_confirmed, mut depth_contradicted) = (0, 0);
+    for p in track.visible.iter().filter_map(|id| map.points.get(id)) {
+        let pc = Map::in_camera(&track.pose_cw, &p.position);
+        let Some(uv) = geo.project_in_image(&pc) else {
+            continue;
+        };
+        predicted.push((uv.x, uv.y));
+        let near = m
+            .grid
+            .in_area(&m.keypoints, uv.x, uv.y, DEPTH_SEARCH_PX, 0, u8::MAX);
+        let depths: Vec<f64> = near
+            .iter()
+            .map(|&i| m.depth[i] as f64)
+            .filter(|d| *d > 0.0)
+            .collect();
+        if depths.is_empty() {
+            continue;
+        }
+        let tol = depth_tolerance(pc.z);
+        if depths.iter().any(|d| (d - pc.z).abs() <= tol) {
+            depth_confirmed += 1;
+        } else if depths.iter().all(|d| *d > pc.z + tol) {
+            depth_contradicted += 1;
+        }
+    }
+    let expected: BTreeSet<(u32, u32)> = predicted.iter().map(|&uv| cell(uv, cell_px)).collect();
     let confirmed = track
         .matches
         .iter()
         .zip(&m.keypoints)
         .filter(|(mt, _)| mt.is_some())
-        .map(|(_, k)| cell(k.un.x, k.un.y))
+        .map(|(_, k)| cell((k.un.x, k.un.y), cell_px))
         .filter(|c| expected.contains(c))
         .collect::<BTreeSet<_>>()
         .len();
+    // Coverage is judged on coarser cells: the map's points are sparser than the keypoints.
+    let known: BTreeSet<(u32, u32)> = predicted
+        .iter()
+        .map(|&uv| cell(uv, coverage_cell_px))
+        .collect();
+    let features: BTreeSet<(u32, u32)> = m
+        .keypoints
+        .iter()
+        .map(|k| cell((k.un.x, k.un.y), coverage_cell_px))
+        .collect();
     Expectation {
         expected_cells: expected.len(),
         confirmed_cells: confirmed,
+        depth_confirmed,
+        depth_contradicted,
+        feature_cells: features.len(),
+        covered_cells: features.intersection(&known).count(),
     }
 }

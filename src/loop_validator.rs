@@ -59,6 +59,9 @@ pub struct Valid {
     pub matched: KfId,
     /// The query's keyframe, when the query is a keyframe (loop closing in Mapping).
     pub query_kf: Option<KfId>,
+    /// The keyframe of the query's map that `query_pose` was tracked against (the query
+    /// keyframe itself, or a frame's reference keyframe); the closure edge hangs on it.
+    pub reference_kf: Option<KfId>,
     /// The query frame's pose in its own map, and the one found in the matched map.
     pub query_pose: Isometry3<f64>,
     pub pose_in_match: Isometry3<f64>,
@@ -97,6 +100,8 @@ pub struct Query<'a> {
     pub pose: Isometry3<f64>,
     /// The query's keyframe, when it is one.
     pub kf: Option<KfId>,
+    /// The keyframe `pose` refers to (see [`Valid::reference_kf`]).
+    pub reference_kf: Option<KfId>,
 }
 
 /// Geometric validation of one candidate against keyframe `c.matched` of `map`.
@@ -179,6 +184,7 @@ pub fn validate(
         match_map: map.id,
         matched,
         query_kf: q.kf,
+        reference_kf: q.reference_kf.or(q.kf),
         query_pose: q.pose,
         pose_in_match: pose,
         matches: inlier_matches,
@@ -519,6 +525,7 @@ mod tests {
             match_map: 0,
             matched: 3,
             query_kf: None,
+            reference_kf: None,
             query_pose: Isometry3::identity(),
             pose_in_match: alignment.inverse(),
             matches: vec![],

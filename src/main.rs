@@ -84,6 +84,25 @@ enum BenchCmd {
         #[arg(long, default_value = "out/bench")]
         out: PathBuf,
     },
+    /// The paper's case study (Table II): generate both sessions, run every controller,
+    /// write OUT/case_study.md (side by side) and OUT/case_study.json.
+    ///
+    /// Example: homing bench case-study --out out/case-study
+    CaseStudy {
+        /// Output folder.
+        #[arg(long, default_value = "out/case-study")]
+        out: PathBuf,
+        /// A case study generated before (with session1/ and session2/); default: generate
+        /// it into OUT/data with the homing-datasets binary.
+        #[arg(long)]
+        data: Option<PathBuf>,
+        /// Generate the small version (320x240, 5 Hz: a pipeline check, not a tracking test).
+        #[arg(long)]
+        small: bool,
+        /// Threaded mode (local BA on its own thread).
+        #[arg(long)]
+        threaded: bool,
+    },
 }
 
 #[derive(Args)]
@@ -207,6 +226,12 @@ fn main() {
         }) => homing::bench::tracking(&sequence, config.as_deref(), &out)
             .map(|md| print!("{md}"))
             .map_err(Into::into),
+        Cmd::Bench(BenchCmd::CaseStudy {
+            out,
+            data,
+            small,
+            threaded,
+        }) => cmd_case_study(out, data, small, threaded),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");
@@ -441,5 +466,26 @@ fn cmd_states(kind: ControllerKind, out: Option<PathBuf>, png: Option<PathBuf>) 
         }
         eprintln!("wrote {}", png.display());
     }
+    Ok(())
+}
+
+fn cmd_case_study(out: PathBuf, data: Option<PathBuf>, small: bool, threaded: bool) -> Result<()> {
+    use homing::bench::case_study;
+    let data = match data {
+        Some(d) => d,
+        None => {
+            let d = out.join("data");
+            if !d.join("session2/scenario.json").is_file() {
+                case_study::generate(&d, small)?;
+            }
+            d
+        }
+    };
+    let (_, md) = case_study::case_study(&data, &out, threaded)?;
+    print!("{md}");
+    println!(
+        "\nwritten: {0}/case_study.md, {0}/case_study.json",
+        out.display()
+    );
     Ok(())
 }

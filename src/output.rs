@@ -384,31 +384,78 @@ pub fn read_closures(path: &Path) -> Result<Vec<ClosureRow>> {
     Ok(rows)
 }
 
-/// Reads the map of each frame with a pose from a run's `states.csv`: `(timestamp, map)`.
-pub fn read_state_maps(path: &Path) -> Result<Vec<(f64, u32)>> {
+/// One row of a run's `states.csv`, read back.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StateCsvRow {
+    pub frame: usize,
+    pub t: f64,
+    pub state: String,
+    /// The state left, on a transition row.
+    pub from: Option<String>,
+    pub map: Option<u32>,
+}
+
+/// Reads a run's `states.csv` back.
+pub fn read_states(path: &Path) -> Result<Vec<StateCsvRow>> {
     let text = crate::error::read_text(path)?;
     let mut out = Vec::new();
-    for (i, line) in text.lines().enumerate().skip(1) {
-        let f: Vec<&str> = line.split(',').collect();
-        if f.len() < 10 {
-            return Err(Error::parse(
-                path,
-                i + 1,
-                "expected 10 comma-separated fields",
-            ));
-        }
-        if f[9].trim().is_empty() {
+    for (i, line) in text.lines().enumerate() {
+        let n = i + 1;
+        if i == 0 {
+            if !line.starts_with("frame,timestamp,state,from,trigger") {
+                return Err(Error::parse(
+                    path,
+                    n,
+                    "not a homing states.csv (unexpected header)",
+                ));
+            }
             continue;
         }
+        if line.trim().is_empty() {
+            continue;
+        }
+        let f: Vec<&str> = line.split(',').collect();
+        if f.len() != 10 {
+            return Err(Error::parse(
+                path,
+                n,
+                format!("expected 10 comma-separated fields, found {}", f.len()),
+            ));
+        }
+        let frame = f[0]
+            .parse::<usize>()
+            .map_err(|_| Error::parse(path, n, "frame: not an integer"))?;
         let t = f[1]
             .parse::<f64>()
-            .map_err(|_| Error::parse(path, i + 1, "timestamp: not a number"))?;
-        let m = f[9]
-            .trim()
-            .parse::<u32>()
-            .map_err(|_| Error::parse(path, i + 1, "map: not an integer"))?;
-        if out.last().is_none_or(|&(lt, _)| lt != t) {
-            out.push((t, m));
+            .map_err(|_| Error::parse(path, n, "timestamp: not a number"))?;
+        let map = if f[9].trim().is_empty() {
+            None
+        } else {
+            Some(
+                f[9].trim()
+                    .parse::<u32>()
+                    .map_err(|_| Error::parse(path, n, "map: not an integer"))?,
+            )
+        };
+        out.push(StateCsvRow {
+            frame,
+            t,
+            state: f[2].to_string(),
+            from: (!f[3].is_empty()).then(|| f[3].to_string()),
+            map,
+        });
+    }
+    Ok(out)
+}
+
+/// The map of each frame with a pose, from a run's `states.csv`: `(timestamp, map)`.
+pub fn read_state_maps(path: &Path) -> Result<Vec<(f64, u32)>> {
+    let mut out: Vec<(f64, u32)> = Vec::new();
+    for r in read_states(path)? {
+        if let Some(m) = r.map {
+            if out.last().is_none_or(|&(t, _)| t != r.t) {
+                out.push((r.t, m));
+            }
         }
     }
     Ok(out)

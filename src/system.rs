@@ -399,7 +399,17 @@ fn evaluate(
             "note": format!("{} poses: too few to align and evaluate", est.len()),
         })));
     }
-    let assoc = eval::associate_and_align(&gt, est, align, 0.02)?;
+    let assoc = match eval::associate_and_align(&gt, est, align, 0.02) {
+        Ok(a) => a,
+        // A trajectory that cannot be aligned (a straight line, a point) is a fact about the
+        // run, not an error of it.
+        Err(e) => {
+            return Ok(Some(serde_json::json!({
+                "coverage": coverage,
+                "note": format!("no ATE: {e}"),
+            })));
+        }
+    };
     let ate = eval::ate(&assoc, align);
     let rpe = eval::rpe(&assoc, 1.0, RpeUnit::Seconds, false).ok();
     let closures = eval::run::check_closures(closures, &gt, 0.02);

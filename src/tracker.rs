@@ -45,6 +45,7 @@ pub struct TrackResult {
     pub mean_chi2: f64,
 }
 
+#[derive(Clone)]
 pub struct Tracker {
     cfg: TrackerConfig,
     geo: ImageGeometry,

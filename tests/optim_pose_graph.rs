@@ -33,10 +33,13 @@ fn noise(rng: &mut ChaCha8Rng, sigma_t: f64, sigma_r_deg: f64) -> Isometry3<f64>
     Isometry3::from_parts(Translation3::from(t), UnitQuaternion::from_scaled_axis(r))
 }
 
+/// Constant odometry σ (the synthetic noise below does not grow with the edge length).
 fn cfg() -> LoopClosingConfig {
     LoopClosingConfig {
         odometry_sigma_m: 0.01,
         odometry_sigma_deg: 0.5,
+        odometry_sigma_per_m: 0.0,
+        odometry_sigma_deg_per_m: 0.0,
         ..Default::default()
     }
 }
@@ -47,7 +50,7 @@ fn graph(rng: &mut ChaCha8Rng, closures: &[(usize, usize)], noisy: bool) -> (Pos
     let k = if noisy { 1.0 } else { 0.0 };
     let gt = truth();
     let c = cfg();
-    let odo = info7(&odometry_information(&c), 1.0);
+    let odo = info7(&odometry_information(&c, 0.0), 1.0);
     let mut g = PoseGraph::default();
     let mut est = gt[0];
     g.nodes.push(node(&est, true));

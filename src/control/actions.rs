@@ -25,10 +25,29 @@ pub type Pose = (Isometry3<f64>, MapId, KfId);
 /// Candidates validated per query (best scores first): geometry costs a few milliseconds each.
 const CANDIDATES_PER_QUERY: usize = 2;
 
-/// Cell size of the expectation check (pixels): 32 × 24 cells on a 640 × 480 image.
-const EXPECTATION_CELL_PX: f64 = 20.0;
+/// Cells of the expectation check: image width / 32 (20 px at 640 × 480); and of the coverage
+/// of the view by the map: width / 8.
+const EXPECTATION_CELLS_ACROSS: f64 = 32.0;
+const COVERAGE_CELLS_ACROSS: f64 = 8.0;
 
 impl StateMachine {
+    /// The expectation check's measures for a tracked frame (see [`global_optimizer::expectation`]).
+    fn expectation(
+        &self,
+        map: &crate::map::Map,
+        m: &Measurement,
+        track: &TrackResult,
+    ) -> global_optimizer::Expectation {
+        global_optimizer::expectation(
+            &self.geo,
+            map,
+            m,
+            track,
+            self.geo.width / EXPECTATION_CELLS_ACROSS,
+            self.geo.width / COVERAGE_CELLS_ACROSS,
+        )
+    }
+
     pub(super) fn run_activity(
         &mut self,
         activity: Activity,
@@ -44,7 +63,8 @@ impl StateMachine {
             Activity::TrackAndMap {
                 loop_scope,
                 relocalize,
-            } => self.track_and_map(m, loop_scope, relocalize, timing),
+                recognize_known,
+            } => self.track_and_map(m, loop_scope, relocalize, recognize_known, timing),
             Activity::TrackLocalized => self.track_localized(m, timing),
             Activity::Recover => {
                 timing.time("recover", || self.recover());
@@ -70,6 +90,8 @@ impl StateMachine {
         self.flags.able_to_track = false;
         let pose = self.start_new_map(m, timing)?;
         self.flags.initialized = true;
+        // The first keyframe's frame is located (at the origin of the new map).
+        self.flags.able_to_track = true;
         Some(pose)
     }
 
@@ -150,6 +172,7 @@ impl StateMachine {
         m: &Measurement,
         scope: LoopScope,
         relocalize: bool,
+        recognize_known: bool,
         timing: &mut Timing,
     ) -> Option<Pose> {
         let Some(cur) = self.current else {
@@ -199,11 +222,66 @@ impl StateMachine {
                 self.detector.insert(kf as u64, &m.descriptors);
             }
         }
+        let lc = self.cfg.loop_closing.enabled;
+        if recognize_known && lc && new_kf.is_none() && !self.flags.able_to_localize {
+            // Only where the map covers the view: Localized would be left at once otherwise.
+            let map = &self.atlas.maps[&cur];
+            let e = self.expectation(map, m, &track);
+            if e.coverage() >= self.cfg.controller.min_known_coverage {
+                timing.time("recognize", || self.recognize_known(m, &track));
+            }
+        }
         let others = self.atlas.maps.len() > 1;
-        if relocalize && others && self.cfg.loop_closing.enabled && !self.flags.able_to_localize {
+        if relocalize && others && lc && !self.flags.able_to_localize {
             timing.time("relocalize", || self.relocalize(m, &track));
         }
+        if self.spec.closures_in_place && self.flags.able_to_localize {
+            // No Localized state to enter: the closure is applied here, and mapping goes on.
+            self.localize(m, timing);
+        }
         Some(pose)
+    }
+
+    /// Mapping region, frame by frame: places of the current map mapped before the loop
+    /// detector's temporal window, recognised and validated, go to the loop pool. A pool of
+    /// them says the camera is in known space, whether or not drift needs correcting.
+    fn recognize_known(&mut self, m: &Measurement, track: &TrackResult) {
+        let Some(cur) = self.current else { return };
+        // Keyframes of the current map made long enough ago: what was mapped before, not the
+        // local map the camera is building now.
+        let newest = m.t - self.cfg.loop_closing.known_place_min_age_s;
+        let old: BTreeSet<KfId> = self.atlas.maps[&cur]
+            .keyframes
+            .values()
+            .filter(|k| k.t <= newest)
+            .map(|k| k.id)
+            .collect();
+        if old.is_empty() {
+            return;
+        }
+        let det = self
+            .detector
+            .detect(&m.descriptors, |img| !old.contains(&(img as KfId)));
+        for c in det.candidates.iter().take(CANDIDATES_PER_QUERY) {
+            let q = Query {
+                m,
+                map: cur,
+                pose: track.pose_cw,
+                kf: None,
+                reference_kf: track.reference_kf.or(self.tracker.reference_kf),
+            };
+            let verdict = loop_validator::validate(
+                &self.cfg.loop_closing,
+                &self.geo,
+                &q,
+                &self.atlas.maps[&cur],
+                c,
+            );
+            let window = self.cfg.loop_closing.pool_window_frames as usize;
+            if self.offer(verdict, m, "loop", window) {
+                break;
+            }
+        }
     }
 
     /// Mapping region: the new keyframe queries the loop detector (and is stored in it); the
@@ -237,6 +315,7 @@ impl StateMachine {
                 map: cur,
                 pose: query_pose,
                 kf: Some(kf),
+                reference_kf: Some(kf),
             };
             let verdict = loop_validator::validate(
                 &self.cfg.loop_closing,
@@ -259,6 +338,7 @@ impl StateMachine {
         let det = self
             .detector
             .detect(&m.descriptors, |img| own.contains(&(img as KfId)));
+        tracing::trace!("frame {}: relocalization query: {:?}", m.frame, det.report);
         for c in det.candidates.iter().take(CANDIDATES_PER_QUERY) {
             let Some(match_map) = self.atlas.map_of_keyframe(c.image as KfId) else {
                 continue;
@@ -268,6 +348,7 @@ impl StateMachine {
                 map: cur,
                 pose: track.pose_cw,
                 kf: None,
+                reference_kf: track.reference_kf.or(self.tracker.reference_kf),
             };
             let verdict = loop_validator::validate(
                 &self.cfg.loop_closing,
@@ -416,7 +497,7 @@ impl StateMachine {
                 continue;
             };
             // The query's keyframe: itself (loop) or the frame's reference keyframe.
-            let r = v.query_kf.or(self.tracker.reference_kf);
+            let r = v.reference_kf.or(self.tracker.reference_kf);
             let Some(r_kf) = r.and_then(|r| q_map.keyframes.get(&r)) else {
                 continue;
             };
@@ -444,6 +525,12 @@ impl StateMachine {
             }
         };
         let pool = self.atlas.begin_pool(kind, m.frame, m.t);
+        self.before_pool = self.current.map(|map| super::BeforePool {
+            pool,
+            map,
+            tracker: self.tracker.clone(),
+            last_tracked_t: self.last_tracked_t,
+        });
         for e in edges.iter_mut() {
             e.pool = pool;
         }
@@ -475,6 +562,14 @@ impl StateMachine {
             .keyframes
             .get(&last.matched)
             .map(|k| k.pose_cw);
+        // A frame that recognised an older part of its own map keeps its reference keyframe:
+        // the tracker's local map stays where the camera is, not around the old keyframe.
+        let own_ref = last
+            .reference_kf
+            .filter(|_| into == from && last.query_kf.is_none());
+        let own_ref_before = own_ref
+            .and_then(|r| self.atlas.maps[&into].keyframes.get(&r))
+            .map(|k| k.pose_cw);
         let report = timing.time("global_opt", || self.global_optimization(into));
         self.flags.consistent_map = report.consistent;
         self.suspects = report.offending_pools;
@@ -485,16 +580,24 @@ impl StateMachine {
         // optimised; a relocalized frame relative to its matched keyframe, which the
         // optimisation may have moved).
         let map = &self.atlas.maps[&into];
-        let pose = match last.query_kf.and_then(|k| map.keyframes.get(&k)) {
-            Some(k) => k.pose_cw,
-            None => match (anchor_before, map.keyframes.get(&last.matched)) {
-                (Some(before), Some(after)) => {
-                    last.pose_in_match * before.inverse() * after.pose_cw
-                }
-                _ => last.pose_in_match,
+        let own = match (own_ref, own_ref_before) {
+            (Some(r), Some(before)) => map
+                .keyframes
+                .get(&r)
+                .map(|after| (last.query_pose * before.inverse() * after.pose_cw, r)),
+            _ => None,
+        };
+        let (pose, ref_kf) = match (own, last.query_kf.and_then(|k| map.keyframes.get(&k))) {
+            (Some(o), _) => o,
+            (None, Some(k)) => (k.pose_cw, k.id),
+            (None, None) => match (anchor_before, map.keyframes.get(&last.matched)) {
+                (Some(before), Some(after)) => (
+                    last.pose_in_match * before.inverse() * after.pose_cw,
+                    last.matched,
+                ),
+                _ => (last.pose_in_match, last.matched),
             },
         };
-        let ref_kf = last.query_kf.unwrap_or(last.matched);
         self.current = Some(into);
         self.atlas.activate(into);
         let matches = last.matches.clone();
@@ -503,6 +606,8 @@ impl StateMachine {
         self.reloc_pool.clear();
         self.loop_pool.clear();
         self.expectation_failures = 0;
+        self.unknown_view_frames = 0;
+        self.cond.left_known_area = false;
     }
 
     /// Replaces a query keyframe's points by the matched map's points it was matched to.
@@ -547,24 +652,44 @@ impl StateMachine {
         let cur = self.current?;
         let map = &self.atlas.maps[&cur];
         let track = timing.time("track", || self.tracker.track(m, map));
+        tracing::debug!(
+            "frame {}: {:?}, {} inliers of {} key points (localized)",
+            m.frame,
+            track.method,
+            track.n_inliers,
+            m.len()
+        );
         if !track.able_to_track {
             self.flags.able_to_track = false;
             self.tracker.lose();
             return None;
         }
         // Expectation: where the map predicts structure, the camera must see it.
-        let e = global_optimizer::expectation(&self.geo, map, m, &track, EXPECTATION_CELL_PX);
+        let e = self.expectation(map, m, &track);
         let pose = self.tracked(cur, &track, m);
         let ratio = e.ratio();
         tracing::debug!(
-            "frame {}: expectation {} of {} cells ({:.2})",
+            "frame {}: expectation {} of {} cells ({:.2}), depth {} confirmed {} contradicted ({:.2}), coverage {} of {} ({:.2})",
             m.frame,
             e.confirmed_cells,
             e.expected_cells,
-            ratio
+            ratio,
+            e.depth_confirmed,
+            e.depth_contradicted,
+            e.contradiction(),
+            e.covered_cells,
+            e.feature_cells,
+            e.coverage()
         );
         let c = &self.cfg.controller;
-        if e.expected_cells >= c.min_expected_cells as usize && ratio < c.min_expectation_ratio {
+        // With depth: the camera contradicts where the map says surfaces are. Without (mono,
+        // or too few readings): the predicted structure is not re-observed.
+        let failed = if e.depth_judged() >= c.min_expected_cells as usize {
+            e.contradiction() > c.max_contradiction
+        } else {
+            e.expected_cells >= c.min_expected_cells as usize && ratio < c.min_expectation_ratio
+        };
+        if failed {
             self.expectation_failures += 1;
         } else {
             self.expectation_failures = 0;
@@ -573,16 +698,25 @@ impl StateMachine {
         if !self.flags.consistent_map {
             self.suspects.clear();
             tracing::info!(
-                "frame {}: {} of {} image cells where the map predicts points re-observed, for {} frames: the map contradicts the camera",
+                "frame {}: the map contradicts the camera for {} frames ({} of {} predicted points behind what the depth sensor sees; {} of {} predicted image cells re-observed)",
                 m.frame,
+                self.expectation_failures,
+                e.depth_contradicted,
+                e.depth_judged(),
                 e.confirmed_cells,
-                e.expected_cells,
-                self.expectation_failures
+                e.expected_cells
             );
         }
-        let map = &self.atlas.maps[&cur];
+        // Left the known area: most of what the camera sees is not in the map, or the map no
+        // longer holds the tracker well, for a few frames running.
+        if e.coverage() < c.min_known_coverage {
+            self.unknown_view_frames += 1;
+        } else {
+            self.unknown_view_frames = 0;
+        }
+        let weak = track.n_inliers < c.min_localized_inliers as usize;
         self.cond.left_known_area =
-            self.flags.consistent_map && self.merger.need_keyframe(map, m, &track, false);
+            self.flags.consistent_map && (weak || self.unknown_view_frames >= c.left_after_frames);
         Some(pose)
     }
 
@@ -679,11 +813,33 @@ impl StateMachine {
         self.cond.recovered = Some(recovered);
         if recovered {
             self.flags.consistent_map = true;
-            self.tracker.lose();
-            // The camera's place was only known in the corrupted map: start afresh.
-            self.current = None;
-            self.last_tracked_t = None;
             self.suspects.clear();
+            // When the newest pool was undone and its query map is back as it was, the camera
+            // resumes from where it was then (Idle re-tracks a short gap in that map); else
+            // its place was only known in the corrupted map, and Idle starts afresh.
+            let newest = self
+                .atlas
+                .pools
+                .iter()
+                .rev()
+                .find(|p| !p.rolled_back)
+                .map(|p| p.id);
+            match self.before_pool.take() {
+                Some(b)
+                    if self.atlas.pools[b.pool as usize].rolled_back
+                        && newest.is_none_or(|n| n < b.pool)
+                        && self.atlas.maps.contains_key(&b.map) =>
+                {
+                    self.tracker = b.tracker;
+                    self.current = Some(b.map);
+                    self.last_tracked_t = b.last_tracked_t;
+                }
+                _ => {
+                    self.tracker.lose();
+                    self.current = None;
+                    self.last_tracked_t = None;
+                }
+            }
         } else {
             let msg = "the map is inconsistent and no closure pool explains it: stopping; \
                        the atlas is marked corrupted";
@@ -709,6 +865,7 @@ impl StateMachine {
                 map: cur,
                 pose: Isometry3::identity(),
                 kf: None,
+                reference_kf: None,
             };
             let verdict = loop_validator::validate(
                 &self.cfg.loop_closing,

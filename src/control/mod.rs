@@ -49,6 +49,15 @@ pub struct TransitionTaken {
     pub flags: Flags,
 }
 
+/// See [`StateMachine::before_pool`].
+#[derive(Clone)]
+struct BeforePool {
+    pool: u32,
+    map: MapId,
+    tracker: Tracker,
+    last_tracked_t: Option<f64>,
+}
+
 /// Internal conditions besides the paper's four flags.
 #[derive(Debug, Clone, Copy, Default)]
 struct Conditions {
@@ -79,8 +88,10 @@ pub struct StateMachine {
     last_tracked_t: Option<f64>,
     /// The pool accepted by the validator, waiting for Localized's entry.
     accepted: Option<Accepted>,
-    /// Consecutive frames in Localized whose expectation failed.
+    /// Consecutive frames in Localized whose expectation failed, and whose view the map did
+    /// not cover.
     expectation_failures: u32,
+    unknown_view_frames: u32,
     /// Why the map was found inconsistent: pools the global optimizer flagged (empty: the
     /// expectation check failed).
     suspects: Vec<u32>,
@@ -88,6 +99,9 @@ pub struct StateMachine {
     pub closures: Vec<ClosureRow>,
     /// The first frame each standing pool's map state was used from (for invalidation).
     pool_frames: Vec<(u32, usize)>,
+    /// The tracker and its map as they were just before the newest pool was applied: when
+    /// that pool is rolled back at once, tracking resumes there instead of in a new map.
+    before_pool: Option<BeforePool>,
     /// Set when the machine stopped because the map is unusable.
     pub stop_reason: Option<String>,
     invalidated_from: Option<usize>,
@@ -125,9 +139,11 @@ impl StateMachine {
             last_tracked_t: None,
             accepted: None,
             expectation_failures: 0,
+            unknown_view_frames: 0,
             suspects: Vec::new(),
             closures: Vec::new(),
             pool_frames: Vec::new(),
+            before_pool: None,
             stop_reason: None,
             invalidated_from: None,
             mono: config.sequence.mono,
@@ -214,13 +230,10 @@ impl StateMachine {
                 flags: self.flags,
             });
         }
-        // The frame's pose stands only if the state it ends in still has a map for it.
-        let pose = pose.filter(|(_, map, kf)| {
-            self.atlas
-                .maps
-                .get(map)
-                .is_some_and(|mm| mm.keyframes.contains_key(kf))
-        });
+        // The frame's pose stands only if its keyframe is still in the atlas (a rollback may
+        // have discarded it); a merge may have moved it to another map.
+        let pose =
+            pose.and_then(|(rel, _, kf)| self.atlas.map_of_keyframe(kf).map(|map| (rel, map, kf)));
         StepOutput {
             state: self.state_name(),
             transitions,
@@ -233,6 +246,7 @@ impl StateMachine {
     fn exit(&mut self, s: State) {
         if s == State::Localized {
             self.expectation_failures = 0;
+            self.unknown_view_frames = 0;
         }
     }
 

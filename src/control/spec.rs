@@ -40,6 +40,10 @@ pub enum Activity {
     TrackAndMap {
         loop_scope: LoopScope,
         relocalize: bool,
+        /// Also recognise, frame by frame, places of the current map mapped earlier (outside
+        /// the loop detector's temporal window): a validated pool of them means the camera is
+        /// in known space (`able_to_localize`), even without a loop to close.
+        recognize_known: bool,
     },
     /// Localized: tracking in known space, no new keyframes, expectation check.
     TrackLocalized,
@@ -131,6 +135,9 @@ pub struct MachineSpec {
     pub acceptance: Acceptance,
     /// Whether a new map is started when tracking is re-acquired (an atlas of several maps).
     pub multi_map: bool,
+    /// An accepted closure pool is applied where it is found, without a change of state (the
+    /// peers have no Localized state; ORB-SLAM2's loop closer corrects the map in Mapping).
+    pub closures_in_place: bool,
 }
 
 impl MachineSpec {
@@ -282,6 +289,7 @@ fn ours() -> MachineSpec {
                 Activity::TrackAndMap {
                     loop_scope: LoopScope::CurrentMap,
                     relocalize: true,
+                    recognize_known: true,
                 },
                 "Mapping ∥ Relocalize",
                 "-",
@@ -324,6 +332,7 @@ fn ours() -> MachineSpec {
         ],
         acceptance: Acceptance::Pool,
         multi_map: true,
+        closures_in_place: false,
     }
 }
 
@@ -343,6 +352,7 @@ fn orbslam2() -> MachineSpec {
                 Activity::TrackAndMap {
                     loop_scope: LoopScope::CurrentMap,
                     relocalize: false,
+                    recognize_known: false,
                 },
                 "tracking, local mapping, loop closing",
                 "-",
@@ -371,6 +381,7 @@ fn orbslam2() -> MachineSpec {
         ],
         acceptance: Acceptance::Immediate,
         multi_map: false,
+        closures_in_place: true,
     }
 }
 
@@ -391,6 +402,7 @@ fn proslam() -> MachineSpec {
                 Activity::TrackAndMap {
                     loop_scope: LoopScope::AllMaps,
                     relocalize: false,
+                    recognize_known: false,
                 },
                 "tracking, mapping, loop closing over all maps",
                 "-",
@@ -415,6 +427,7 @@ fn proslam() -> MachineSpec {
         ],
         acceptance: Acceptance::Immediate,
         multi_map: true,
+        closures_in_place: true,
     }
 }
 
@@ -434,6 +447,7 @@ fn ldso() -> MachineSpec {
                 Activity::TrackAndMap {
                     loop_scope: LoopScope::CurrentMap,
                     relocalize: false,
+                    recognize_known: false,
                 },
                 "odometry, mapping, loop closing",
                 "-",
@@ -453,6 +467,7 @@ fn ldso() -> MachineSpec {
         ],
         acceptance: Acceptance::Immediate,
         multi_map: false,
+        closures_in_place: true,
     }
 }
 

@@ -10,6 +10,7 @@
 
 pub mod plot;
 pub mod run;
+pub mod timeline;
 
 use crate::error::{Error, Result};
 use crate::geometry::{Sim3, umeyama};

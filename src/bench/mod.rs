@@ -1,6 +1,9 @@
 //! Benchmarks that print numbers (never assert on them): `homing bench tracking` runs a
 //! sequence in both modes and reports per-stage milliseconds per frame, throughput against
-//! real time and the trajectory error.
+//! real time and the trajectory error; `homing bench case-study` reproduces the paper's
+//! Table II (see [`case_study`]).
+
+pub mod case_study;
 
 use crate::error::Result;
 use crate::output::Summary;

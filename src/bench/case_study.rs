@@ -1,0 +1,269 @@
+//! `homing bench case-study`: the paper's Table II, reproduced. Both sessions of the synthetic
+//! robot-vacuum case study run under every controller on the same components; each run's
+//! state timeline is compared step by step with the paper's column for that controller.
+//!
+//! Session 2 (step 14) starts from the atlas session 1 saved — for `ours`, the only
+//! controller that loads a map (the peers start from scratch, as the paper's "Init" says).
+//! The paper's "N/A" (the system has stopped or has no such state) is a stopped machine here:
+//! `Final`.
+
+use crate::config::ControllerKind;
+use crate::error::{Error, Result};
+use crate::eval::timeline::{self, StepResult};
+use crate::output::Summary;
+use crate::system::{RunOptions, run};
+use serde::Serialize;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+pub const CONTROLLERS: [ControllerKind; 4] = [
+    ControllerKind::Ours,
+    ControllerKind::Orbslam2,
+    ControllerKind::Proslam,
+    ControllerKind::Ldso,
+];
+
+/// The paper's Table II columns for the peers, steps 0–14 (ours comes from scenario.json).
+fn paper_column(kind: ControllerKind) -> Option<[&'static [&'static str]; 15]> {
+    const I: &[&str] = &["Init"];
+    const M: &[&str] = &["Mapping"];
+    const R: &[&str] = &["Relocalization"];
+    const F: &[&str] = &["Final"];
+    match kind {
+        ControllerKind::Ours => None,
+        ControllerKind::Orbslam2 => Some([I, M, M, M, R, R, R, R, R, M, R, R, R, F, I]),
+        ControllerKind::Ldso => Some([I, M, M, M, F, F, F, F, F, F, F, F, F, F, I]),
+        ControllerKind::Proslam => Some([I, M, M, M, R, M, M, M, M, M, R, M, M, F, I]),
+    }
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct ControllerResult {
+    pub controller: String,
+    pub steps_total: usize,
+    pub steps_matched: usize,
+    pub steps: Vec<StepResult>,
+    pub maps: usize,
+    pub keyframes: usize,
+    pub coverage: Option<f64>,
+    pub ate_largest_map_m: Option<f64>,
+    pub closures_accepted: u64,
+    pub closures_accepted_wrong: u64,
+    pub closures_rolled_back: u64,
+    pub final_state: String,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct CaseStudy {
+    pub data: PathBuf,
+    /// Frames of tolerance around each step's boundaries.
+    pub window_frames: usize,
+    pub controllers: Vec<ControllerResult>,
+}
+
+/// Generates the case study with the `homing-datasets` binary next to this one (the homing
+/// library cannot depend on the generator crate, which depends on it).
+pub fn generate(dir: &Path, small: bool) -> Result<()> {
+    let exe = std::env::current_exe().map_err(|e| Error::invalid(e.to_string()))?;
+    let gen_name = format!("homing-datasets{}", std::env::consts::EXE_SUFFIX);
+    let generator = exe.with_file_name(&gen_name);
+    if !generator.is_file() {
+        return Err(Error::invalid(format!(
+            "{} not found: build it (cargo build --release -p homing-datasets) or pass --data DIR \
+             with a generated case study",
+            generator.display()
+        )));
+    }
+    let mut cmd = std::process::Command::new(&generator);
+    cmd.args(["synth", "--scenario", "case-study", "--out"])
+        .arg(dir);
+    if small {
+        cmd.arg("--small");
+    }
+    tracing::info!("bench: generating the case study into {}", dir.display());
+    let status = cmd
+        .status()
+        .map_err(|e| Error::invalid(format!("cannot run {}: {e}", generator.display())))?;
+    if !status.success() {
+        return Err(Error::invalid(format!(
+            "{} failed: {status}",
+            generator.display()
+        )));
+    }
+    Ok(())
+}
+
+fn num(s: &Summary, ptr: &str) -> Option<f64> {
+    s.evaluation.as_ref()?.pointer(ptr)?.as_f64()
+}
+
+/// Runs every controller on both sessions under `data` (session1/, session2/) and writes
+/// OUT/case_study.md and OUT/case_study.json.
+pub fn case_study(data: &Path, out: &Path, threaded: bool) -> Result<(CaseStudy, String)> {
+    let s1 = data.join("session1");
+    let s2 = data.join("session2");
+    let steps1 = timeline::read_steps(&s1.join("scenario.json"))?;
+    let steps2 = timeline::read_steps(&s2.join("scenario.json"))?;
+    let fps = scenario_fps(&s1.join("scenario.json"))?;
+    let window = (fps * 1.0).round() as usize;
+    let mut results = Vec::new();
+    for kind in CONTROLLERS {
+        let name = kind.as_str();
+        let dir = out.join(name);
+        let atlas = dir.join("atlas.bin");
+        let opts = RunOptions {
+            sequence: s1.clone(),
+            out: dir.join("session1"),
+            eval: true,
+            command: std::env::args().collect(),
+            threaded,
+            controller: Some(kind),
+            save_map: (kind == ControllerKind::Ours).then(|| atlas.clone()),
+            ..Default::default()
+        };
+        tracing::info!("bench case-study: {name}, session 1");
+        let sum1 = run(&opts)?;
+        let opts2 = RunOptions {
+            sequence: s2.clone(),
+            out: dir.join("session2"),
+            eval: true,
+            command: std::env::args().collect(),
+            threaded,
+            controller: Some(kind),
+            load_map: (kind == ControllerKind::Ours).then(|| atlas.clone()),
+            ..Default::default()
+        };
+        tracing::info!("bench case-study: {name}, session 2");
+        run(&opts2)?;
+        let mut st1 = steps1.clone();
+        let mut st2 = steps2.clone();
+        if let Some(col) = paper_column(kind) {
+            for s in st1.iter_mut().chain(st2.iter_mut()) {
+                if let Some(e) = col.get(s.step as usize) {
+                    s.expected_states = e.iter().map(|x| x.to_string()).collect();
+                }
+            }
+        }
+        let rows1 = crate::output::read_states(&dir.join("session1/states.csv"))?;
+        let rows2 = crate::output::read_states(&dir.join("session2/states.csv"))?;
+        let mut steps = timeline::compare(&st1, &rows1, window);
+        steps.extend(timeline::compare(&st2, &rows2, window));
+        let c = |p: &str| {
+            sum1.evaluation
+                .as_ref()
+                .and_then(|e| e.pointer(p))
+                .and_then(|v| v.as_u64())
+                .unwrap_or(0)
+        };
+        results.push(ControllerResult {
+            controller: name.into(),
+            steps_total: steps.len(),
+            steps_matched: steps.iter().filter(|s| s.matched).count(),
+            maps: sum1.maps,
+            keyframes: sum1.keyframes,
+            coverage: num(&sum1, "/coverage"),
+            ate_largest_map_m: num(&sum1, "/largest_map/ate_rmse_m"),
+            closures_accepted: c("/closures/accepted"),
+            closures_accepted_wrong: c("/closures/accepted_wrong"),
+            closures_rolled_back: c("/closures/rolled_back"),
+            final_state: sum1.final_state.clone(),
+            steps,
+        });
+    }
+    let cs = CaseStudy {
+        data: data.to_path_buf(),
+        window_frames: window,
+        controllers: results,
+    };
+    let md = markdown(&cs, &steps1, &steps2);
+    std::fs::create_dir_all(out).map_err(|e| Error::file(out, format!("cannot create: {e}")))?;
+    crate::io::atomic_write(&out.join("case_study.md"), md.as_bytes())?;
+    let json = serde_json::to_vec_pretty(&cs).map_err(|e| Error::invalid(e.to_string()))?;
+    crate::io::atomic_write(&out.join("case_study.json"), &json)?;
+    Ok((cs, md))
+}
+
+fn scenario_fps(path: &Path) -> Result<f64> {
+    let text = crate::error::read_text(path)?;
+    let v: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| Error::parse(path, e.line(), e.to_string()))?;
+    v.get("fps")
+        .and_then(|f| f.as_f64())
+        .ok_or_else(|| Error::file(path, "no fps"))
+}
+
+fn markdown(
+    cs: &CaseStudy,
+    steps1: &[timeline::ScenarioStep],
+    steps2: &[timeline::ScenarioStep],
+) -> String {
+    let mut md = String::new();
+    let _ = writeln!(md, "# Case study (paper Table II): {}\n", cs.data.display());
+    let _ = writeln!(
+        md,
+        "Each cell: the states observed during the step (±{} frames); ✓ when the expected \
+         states (ours: Table II's last column; peers: their columns, N/A = Final) occur in \
+         order and the step's dominant state is one of them.\n",
+        cs.window_frames
+    );
+    let head: Vec<String> = cs
+        .controllers
+        .iter()
+        .map(|c| format!("{} ({}/{})", c.controller, c.steps_matched, c.steps_total))
+        .collect();
+    let _ = writeln!(
+        md,
+        "| step | event | expected (ours) | {} |",
+        head.join(" | ")
+    );
+    let _ = writeln!(md, "|---|---|---|{}", "---|".repeat(cs.controllers.len()));
+    let all: Vec<&timeline::ScenarioStep> = steps1.iter().chain(steps2).collect();
+    for (i, s) in all.iter().enumerate() {
+        let cells: Vec<String> = cs
+            .controllers
+            .iter()
+            .map(|c| {
+                let r = &c.steps[i];
+                format!(
+                    "{} {}",
+                    if r.matched { "✓" } else { "✗" },
+                    r.observed.join(" → ")
+                )
+            })
+            .collect();
+        let _ = writeln!(
+            md,
+            "| {} | {} | {} | {} |",
+            s.step,
+            s.event,
+            s.expected_states.join(", "),
+            cells.join(" | ")
+        );
+    }
+    let _ = writeln!(md);
+    let _ = writeln!(
+        md,
+        "| controller | steps matched | maps | keyframes | coverage | ATE largest map (cm) | closures accepted (wrong) | rolled back | final state |"
+    );
+    let _ = writeln!(md, "|---|---|---|---|---|---|---|---|---|");
+    for c in &cs.controllers {
+        let _ = writeln!(
+            md,
+            "| {} | {}/{} | {} | {} | {} | {} | {} ({}) | {} | {} |",
+            c.controller,
+            c.steps_matched,
+            c.steps_total,
+            c.maps,
+            c.keyframes,
+            c.coverage
+                .map_or("–".into(), |v| format!("{:.1} %", 100.0 * v)),
+            c.ate_largest_map_m
+                .map_or("–".into(), |v| format!("{:.2}", 100.0 * v)),
+            c.closures_accepted,
+            c.closures_accepted_wrong,
+            c.closures_rolled_back,
+            c.final_state
+        );
+    }
+    md
+}
