@@ -298,8 +298,11 @@ pub struct ControllerConfig {
     /// holds it well: mapping must resume before tracking fails).
     pub min_localized_inliers: u32,
     pub left_after_frames: u32,
-    /// Idle re-tracks in the current map when the last tracked frame is at most this old
-    /// (seconds); after a longer loss a new map is started.
+    /// Tracking continues in the current map only across breaks in the measurements of at
+    /// most this many seconds since the last tracked frame: Idle re-tracks a shorter loss in
+    /// the current map, and a longer break (frames dropped: kidnapping) is a loss even where
+    /// the tracker might still find a pose; a new map is started and the Relocalize region
+    /// must validate the place before the maps are joined.
     pub reacquire_gap_s: f64,
 }
 

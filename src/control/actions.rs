@@ -147,6 +147,44 @@ impl StateMachine {
         None
     }
 
+    /// The tracker on the current map (Core's Mapping region and Localized). A break in the
+    /// measurements longer than `controller.reacquire_gap_s` (frames dropped: the camera may
+    /// have been carried anywhere, the paper's kidnapping) is a loss without asking the
+    /// tracker: continuing from the last pose would be a guess that a look-alike place can
+    /// confirm, whereas after the loss the place must be recognised and validated by a pool
+    /// (Relocalize region) before the maps are joined. Idle applies the same gap to re-track.
+    fn track_current(
+        &mut self,
+        cur: MapId,
+        m: &Measurement,
+        timing: &mut Timing,
+    ) -> Option<TrackResult> {
+        let gap = self.last_tracked_t.map_or(0.0, |t| m.t - t);
+        if gap > self.cfg.controller.reacquire_gap_s {
+            tracing::info!(
+                "frame {}: {gap:.2} s since the last tracked frame: tracking lost",
+                m.frame
+            );
+        } else {
+            let map = &self.atlas.maps[&cur];
+            let track = timing.time("track", || self.tracker.track(m, map));
+            tracing::debug!(
+                "frame {}: {:?}, {} inliers of {} key points, mean chi2 {:.3}",
+                m.frame,
+                track.method,
+                track.n_inliers,
+                m.len(),
+                track.mean_chi2
+            );
+            if track.able_to_track {
+                return Some(track);
+            }
+        }
+        self.flags.able_to_track = false;
+        self.tracker.lose();
+        None
+    }
+
     /// Bookkeeping of a tracked frame; returns its pose.
     fn tracked(&mut self, cur: MapId, track: &TrackResult, m: &Measurement) -> Pose {
         self.flags.able_to_track = true;
@@ -179,21 +217,7 @@ impl StateMachine {
             self.flags.able_to_track = false;
             return None;
         };
-        let map = &self.atlas.maps[&cur];
-        let track = timing.time("track", || self.tracker.track(m, map));
-        tracing::debug!(
-            "frame {}: {:?}, {} inliers of {} key points, mean chi2 {:.3}",
-            m.frame,
-            track.method,
-            track.n_inliers,
-            m.len(),
-            track.mean_chi2
-        );
-        if !track.able_to_track {
-            self.flags.able_to_track = false;
-            self.tracker.lose();
-            return None;
-        }
+        let track = self.track_current(cur, m, timing)?;
         let mut pose = self.tracked(cur, &track, m);
         let map = self.atlas.maps.get_mut(&cur).expect("current map exists");
         let mut new_kf = None;
@@ -650,20 +674,8 @@ impl StateMachine {
     /// Localized: track in known space without new keyframes; check the map's expectation.
     fn track_localized(&mut self, m: &Measurement, timing: &mut Timing) -> Option<Pose> {
         let cur = self.current?;
+        let track = self.track_current(cur, m, timing)?;
         let map = &self.atlas.maps[&cur];
-        let track = timing.time("track", || self.tracker.track(m, map));
-        tracing::debug!(
-            "frame {}: {:?}, {} inliers of {} key points (localized)",
-            m.frame,
-            track.method,
-            track.n_inliers,
-            m.len()
-        );
-        if !track.able_to_track {
-            self.flags.able_to_track = false;
-            self.tracker.lose();
-            return None;
-        }
         // Expectation: where the map predicts structure, the camera must see it.
         let e = self.expectation(map, m, &track);
         let pose = self.tracked(cur, &track, m);
