@@ -283,9 +283,10 @@ impl StateMachine {
         if old.is_empty() {
             return;
         }
-        let det = self
-            .detector
-            .detect(&m.descriptors, |img| !old.contains(&(img as KfId)));
+        let aliased = &self.aliased;
+        let det = self.detector.detect(&m.descriptors, |img| {
+            !old.contains(&(img as KfId)) || aliased.contains(&(img as KfId))
+        });
         for c in det.candidates.iter().take(CANDIDATES_PER_QUERY) {
             let q = Query {
                 m,
@@ -318,13 +319,15 @@ impl StateMachine {
         let recent = self
             .detector
             .recent_images(self.cfg.loop_closing.temporal_window as usize);
+        let aliased = &self.aliased;
         let exclude = |img: u64| {
             let k = img as KfId;
             let near = recent.contains(&img) || covisible.contains(&k);
-            match scope {
-                LoopScope::CurrentMap => !own.contains(&k) || near,
-                LoopScope::AllMaps => own.contains(&k) && near,
-            }
+            aliased.contains(&k)
+                || match scope {
+                    LoopScope::CurrentMap => !own.contains(&k) || near,
+                    LoopScope::AllMaps => own.contains(&k) && near,
+                }
         };
         let det = self
             .detector
@@ -359,9 +362,10 @@ impl StateMachine {
     fn relocalize(&mut self, m: &Measurement, track: &TrackResult) {
         let Some(cur) = self.current else { return };
         let own: BTreeSet<KfId> = self.atlas.maps[&cur].keyframes.keys().copied().collect();
-        let det = self
-            .detector
-            .detect(&m.descriptors, |img| own.contains(&(img as KfId)));
+        let aliased = &self.aliased;
+        let det = self.detector.detect(&m.descriptors, |img| {
+            own.contains(&(img as KfId)) || aliased.contains(&(img as KfId))
+        });
         tracing::trace!("frame {}: relocalization query: {:?}", m.frame, det.report);
         for c in det.candidates.iter().take(CANDIDATES_PER_QUERY) {
             let Some(match_map) = self.atlas.map_of_keyframe(c.image as KfId) else {
@@ -732,6 +736,30 @@ impl StateMachine {
         Some(pose)
     }
 
+    /// After pool `pool` was rolled back: its matched keyframes and their best covisible
+    /// neighbours are look-alikes of the place the camera was really in (see `aliased`).
+    fn mark_aliased(&mut self, pool: PoolId) {
+        let matched: BTreeSet<KfId> = self.atlas.pools[pool as usize]
+            .edges
+            .iter()
+            .map(|e| e.matched)
+            .collect();
+        let mut marked = matched.clone();
+        for kf in &matched {
+            if let Some(k) = self
+                .atlas
+                .map_of_keyframe(*kf)
+                .and_then(|id| self.atlas.maps[&id].keyframes.get(kf))
+            {
+                marked.extend(k.best_covisible(5));
+            }
+        }
+        tracing::info!(
+            "pool {pool}: keyframes {marked:?} are look-alikes; they anchor no more closures"
+        );
+        self.aliased.extend(marked);
+    }
+
     /// Corrupted map: undo the pools that explain the inconsistency, newest first, until the
     /// map is consistent again.
     fn recover(&mut self) {
@@ -783,6 +811,7 @@ impl StateMachine {
                         self.loop_pool.refuse(*map, *map, s.to_isometry());
                     }
                 }
+                self.mark_aliased(u.pool);
                 if let Some((_, f)) = self.pool_frames.iter().find(|(q, _)| *q == u.pool) {
                     self.invalidated_from = Some(self.invalidated_from.map_or(*f, |x| x.min(*f)));
                 }

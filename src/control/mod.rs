@@ -95,6 +95,11 @@ pub struct StateMachine {
     /// Why the map was found inconsistent: pools the global optimizer flagged (empty: the
     /// expectation check failed).
     suspects: Vec<u32>,
+    /// Keyframes that anchored a closure pool the map later contradicted (and their best
+    /// covisible neighbours): proven look-alikes of another place, they no longer anchor
+    /// relocalizations or loop closures, so the same wrong closure is not made again from a
+    /// new map (whose frame the refused alignments of the pools do not cover).
+    aliased: std::collections::BTreeSet<KfId>,
     /// Every closure or relocalization candidate, for closures.csv.
     pub closures: Vec<ClosureRow>,
     /// The first frame each standing pool's map state was used from (for invalidation).
@@ -141,6 +146,7 @@ impl StateMachine {
             expectation_failures: 0,
             unknown_view_frames: 0,
             suspects: Vec::new(),
+            aliased: Default::default(),
             closures: Vec::new(),
             pool_frames: Vec::new(),
             before_pool: None,
