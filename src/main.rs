@@ -102,6 +102,12 @@ enum BenchCmd {
         /// Threaded mode (local BA on its own thread).
         #[arg(long)]
         threaded: bool,
+        /// Only these controllers (repeatable); default: ours, orbslam2, proslam, ldso.
+        #[arg(long, value_enum)]
+        controller: Vec<ControllerKind>,
+        /// Config file (TOML) for every run; the camera still comes from the sequences.
+        #[arg(long)]
+        config: Option<PathBuf>,
     },
 }
 
@@ -231,7 +237,9 @@ fn main() {
             data,
             small,
             threaded,
-        }) => cmd_case_study(out, data, small, threaded),
+            controller,
+            config,
+        }) => cmd_case_study(out, data, small, threaded, controller, config),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");
@@ -469,7 +477,14 @@ fn cmd_states(kind: ControllerKind, out: Option<PathBuf>, png: Option<PathBuf>) 
     Ok(())
 }
 
-fn cmd_case_study(out: PathBuf, data: Option<PathBuf>, small: bool, threaded: bool) -> Result<()> {
+fn cmd_case_study(
+    out: PathBuf,
+    data: Option<PathBuf>,
+    small: bool,
+    threaded: bool,
+    controllers: Vec<ControllerKind>,
+    config: Option<PathBuf>,
+) -> Result<()> {
     use homing::bench::case_study;
     let data = match data {
         Some(d) => d,
@@ -481,7 +496,17 @@ fn cmd_case_study(out: PathBuf, data: Option<PathBuf>, small: bool, threaded: bo
             d
         }
     };
-    let (_, md) = case_study::case_study(&data, &out, threaded)?;
+    let controllers = if controllers.is_empty() {
+        case_study::CONTROLLERS.to_vec()
+    } else {
+        controllers
+    };
+    let opts = case_study::Options {
+        threaded,
+        controllers,
+        config,
+    };
+    let (_, md) = case_study::case_study(&data, &out, &opts)?;
     print!("{md}");
     println!(
         "\nwritten: {0}/case_study.md, {0}/case_study.json",

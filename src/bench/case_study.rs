@@ -97,9 +97,30 @@ fn num(s: &Summary, ptr: &str) -> Option<f64> {
     s.evaluation.as_ref()?.pointer(ptr)?.as_f64()
 }
 
-/// Runs every controller on both sessions under `data` (session1/, session2/) and writes
+/// How [`case_study`] runs.
+#[derive(Debug, Clone)]
+pub struct Options {
+    pub threaded: bool,
+    /// In table order.
+    pub controllers: Vec<ControllerKind>,
+    /// Config file for every run (`None`: the defaults).
+    pub config: Option<PathBuf>,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Self {
+            threaded: false,
+            controllers: CONTROLLERS.to_vec(),
+            config: None,
+        }
+    }
+}
+
+/// Runs the controllers on both sessions under `data` (session1/, session2/) and writes
 /// OUT/case_study.md and OUT/case_study.json.
-pub fn case_study(data: &Path, out: &Path, threaded: bool) -> Result<(CaseStudy, String)> {
+pub fn case_study(data: &Path, out: &Path, o: &Options) -> Result<(CaseStudy, String)> {
+    let threaded = o.threaded;
     let s1 = data.join("session1");
     let s2 = data.join("session2");
     let steps1 = timeline::read_steps(&s1.join("scenario.json"))?;
@@ -107,7 +128,7 @@ pub fn case_study(data: &Path, out: &Path, threaded: bool) -> Result<(CaseStudy,
     let fps = scenario_fps(&s1.join("scenario.json"))?;
     let window = (fps * 1.0).round() as usize;
     let mut results = Vec::new();
-    for kind in CONTROLLERS {
+    for &kind in &o.controllers {
         let name = kind.as_str();
         let dir = out.join(name);
         let atlas = dir.join("atlas.bin");
@@ -117,6 +138,7 @@ pub fn case_study(data: &Path, out: &Path, threaded: bool) -> Result<(CaseStudy,
             eval: true,
             command: std::env::args().collect(),
             threaded,
+            config: o.config.clone(),
             controller: Some(kind),
             save_map: (kind == ControllerKind::Ours).then(|| atlas.clone()),
             ..Default::default()
@@ -129,6 +151,7 @@ pub fn case_study(data: &Path, out: &Path, threaded: bool) -> Result<(CaseStudy,
             eval: true,
             command: std::env::args().collect(),
             threaded,
+            config: o.config.clone(),
             controller: Some(kind),
             load_map: (kind == ControllerKind::Ours).then(|| atlas.clone()),
             ..Default::default()
