@@ -5,8 +5,12 @@
 //! widened by a tolerance window on both sides (the step boundaries are script marks; a
 //! state change a few frames early or late is the same behaviour). A step **matches** when
 //! its expected states occur in that order among the observed ones, and — unless a
-//! transient state (Init, CorruptedMap, Final) is expected, which by design lasts a frame —
-//! the state held for most of the step's own frames is one of the expected states.
+//! transient state (Init, Idle, CorruptedMap, Final) is expected — the state held for most of
+//! the step's own frames is one of the expected states. Init, CorruptedMap and Final last a
+//! frame by design; Idle lasts until a frame can (re)start tracking, which with depth is the
+//! first good frame after a kidnapping: its length is the sensor's, not the machine's (a
+//! stretch of unusable images keeps the machine in Idle throughout, which callers that care
+//! check on the frames themselves).
 
 use crate::output::StateCsvRow;
 use serde::{Deserialize, Serialize};
@@ -36,7 +40,7 @@ pub struct StepResult {
     pub matched: bool,
 }
 
-const TRANSIENT: [&str; 3] = ["Init", "CorruptedMap", "Final"];
+const TRANSIENT: [&str; 4] = ["Init", "Idle", "CorruptedMap", "Final"];
 
 /// Per frame index: the states the frame passed through (the `from` of each transition, then
 /// the state it ended in). Frames without a row keep the previous frame's state.
