@@ -479,10 +479,12 @@ fn corridor_piece(
 ///
 /// Layout (x east, y north, metres): Room 1 [0,5]x[0,4] with door A at x = 2.5 in its north
 /// wall; corridor [-0.5,17.5]x[4.1,6.1]; identical corridor pieces [4.5,8.5] (door B at 6.5)
-/// and [10.5,14.5] (door C at 12.5); a closet behind B, [4.5,8.5]x[6.2,10.2], whose far wall,
-/// floor and ceiling equal Room 2's [10.5,14.5]x[6.2,10.2] (Room 2 differs only in its side
-/// walls and furniture, visible once inside); Room 3 [14.6,18.6]x[6.2,10.2] with door D to
-/// Room 2 at y = 8.5. The corridor lights are off while the robot crosses x = 8.5..10.5.
+/// and [10.5,14.5] (door C at 12.5); a closet behind B, [4.5,8.5]x[6.2,8.7], whose far wall,
+/// floor and ceiling look like Room 2's [10.5,14.5]x[6.2,10.2] (Room 2 differs in its side
+/// walls and furniture, and its far wall is 1.5 m further: the robot maps the closet from
+/// door B, and the depth sensor sees through the closet's predicted far wall once it enters
+/// Room 2 believing it is behind B); Room 3 [14.6,18.6]x[6.2,10.2] with door D to Room 2 at
+/// y = 8.5. The corridor lights are off while the robot crosses x = 8.5..10.5.
 pub fn case_study(seed: u64) -> Scenario {
     let m = |k: u64| mix(seed ^ k);
     let door = |side, center| Door {
@@ -606,7 +608,7 @@ pub fn case_study(seed: u64) -> Scenario {
     };
     sc.add_room(
         [4.5, 6.2],
-        [8.5, 10.2],
+        [8.5, 8.7],
         HEIGHT,
         &[door(Side::South, 6.5)],
         closet,
@@ -614,7 +616,7 @@ pub fn case_study(seed: u64) -> Scenario {
     sc.add_poster(
         "closet/north",
         Side::North,
-        10.2,
+        8.7,
         [6.1, 0.6],
         [0.8, 0.8],
         m(0x3005),
@@ -693,6 +695,10 @@ pub fn case_study(seed: u64) -> Scenario {
         .go(5.5, 5.1)
         .turn_to(90.0)
         .wait(0.7)
+        // Straight through door B: the closet is mapped (its far wall is within range).
+        .go(6.5, 5.1)
+        .turn_to(90.0)
+        .wait(1.0)
         .go(8.3, 5.1);
     r.mark("4").go(10.3, 5.1);
     r.mark("5").go(11.5, 5.1);
@@ -718,7 +724,9 @@ pub fn case_study(seed: u64) -> Scenario {
     k.turn_rate = 100f64.to_radians();
     k.mark("10").wait(1.2);
     k.mark("11").go(16.0, 9.3).go(16.0, 8.5);
-    k.mark("12").turn_to(180.0).go(13.0, 8.5).turn_to(120.0);
+    // Step 12 begins on Room 2's threshold (door D, x = 14.5): the step is re-entering it.
+    k.turn_to(180.0).go(14.5, 8.5);
+    k.mark("12").go(13.0, 8.5).turn_to(120.0);
     k.mark("13").wait(1.0);
     let leg2 = k.path(Jitter::new(m(0x9001), 0.0, 0.0015, true));
     let mut marks = marks1;
