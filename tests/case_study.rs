@@ -1,0 +1,91 @@
+//! The paper's case study (Table II) end to end, under our state machine: both sessions of
+//! the synthetic robot vacuum (rooms, a corridor whose doors B and C look alike, a dark
+//! stretch, a kidnapping, a second session on the saved atlas), the run's state timeline
+//! compared with the paper's column step by step, and the map it leaves behind.
+//!
+//! Rendered at 320×240 (every second frame, 15 Hz) so that the suite stays fast; the
+//! full-size version is `homing bench case-study`.
+
+use homing::bench::case_study::{self, Options};
+use homing::config::ControllerKind;
+use homing_datasets::scenarios;
+use homing_datasets::sensor::SensorOptions;
+use homing_datasets::writer::{GenOptions, generate};
+use std::path::Path;
+
+/// Steps of Table II that our machine does not reproduce yet, with the reason (issue #6 and
+/// the README's case-study section): every other step must match.
+const KNOWN_GAPS: &[(u32, &str)] = &[
+    (
+        2,
+        "the own map's known places are not recognised from the offset viewpoints of the way back",
+    ),
+    (
+        6,
+        "the wrong relocalization at door C is made, but Localized is left at once for Mapping \
+         because the tracker weakens (fewer than min_localized_inliers)",
+    ),
+    (
+        7,
+        "so no expectation check runs when the robot enters Room 2: the wrong merge stands",
+    ),
+    (8, "(follows from 7: no recovery through Idle)"),
+    (
+        9,
+        "the corridor driven the opposite way is not recognised, so Room 1 is not re-entered Localized",
+    ),
+    (
+        12,
+        "Room 2 is recognised through door D too late in the step (the HBST's 25-bit match \
+         threshold leaves too few votes)",
+    ),
+    (
+        14,
+        "session 2's first views of Room 2 are not recognised in the loaded atlas",
+    ),
+];
+
+fn synth(dir: &Path, stride: usize) {
+    let mut sc = scenarios::build("case-study", 1).unwrap();
+    sc.small_stride = stride;
+    let opts = GenOptions {
+        out: dir.to_path_buf(),
+        small: true,
+        seed: 1,
+        sensor: SensorOptions::realistic(),
+        max_frames: None,
+    };
+    generate(&sc, &opts).unwrap();
+}
+
+#[test]
+fn ours_follows_table_ii_outside_the_known_gaps() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    synth(&data, 2);
+    let out = tmp.path().join("out");
+    let opts = Options {
+        controllers: vec![ControllerKind::Ours],
+        ..Default::default()
+    };
+    let (cs, md) = case_study::case_study(&data, &out, &opts).unwrap();
+    println!("{md}");
+    let ours = &cs.controllers[0];
+    assert_eq!(ours.steps_total, 15, "{md}");
+    for s in &ours.steps {
+        if KNOWN_GAPS.iter().any(|(k, _)| *k == s.step) {
+            continue;
+        }
+        assert!(
+            s.matched,
+            "step {} ({}): expected {:?}, observed {:?} (dominant {})\n{md}",
+            s.step, s.name, s.expected, s.observed, s.dominant
+        );
+    }
+    // The kidnapping started a new map (step 10): the atlas holds more than one.
+    assert!(ours.maps >= 2, "{md}");
+    // The dark stretch keeps the machine in Idle (the timeline rule only asks that Idle
+    // occurs, since after a kidnapping it lasts one frame).
+    let dark = ours.steps.iter().find(|s| s.step == 4).unwrap();
+    assert_eq!(dark.dominant, "Idle", "{md}");
+}
