@@ -8,10 +8,8 @@
 
 use homing::bench::case_study::{self, Options};
 use homing::config::ControllerKind;
-use homing_datasets::scenarios;
-use homing_datasets::sensor::SensorOptions;
-use homing_datasets::writer::{GenOptions, generate};
-use std::path::Path;
+
+mod common;
 
 /// Steps of Table II that our machine does not reproduce yet, with the reason (issue #6 and
 /// the README's case-study section): every other step must match.
@@ -45,24 +43,11 @@ const KNOWN_GAPS: &[(u32, &str)] = &[
     ),
 ];
 
-fn synth(dir: &Path, stride: usize) {
-    let mut sc = scenarios::build("case-study", 1).unwrap();
-    sc.small_stride = stride;
-    let opts = GenOptions {
-        out: dir.to_path_buf(),
-        small: true,
-        seed: 1,
-        sensor: SensorOptions::realistic(),
-        max_frames: None,
-    };
-    generate(&sc, &opts).unwrap();
-}
-
 #[test]
 fn ours_follows_table_ii_outside_the_known_gaps() {
     let tmp = tempfile::tempdir().unwrap();
     let data = tmp.path().join("data");
-    synth(&data, 2);
+    common::synth_small("case-study", &data, Some(2));
     let out = tmp.path().join("out");
     let opts = Options {
         controllers: vec![ControllerKind::Ours],

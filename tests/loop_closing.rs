@@ -3,22 +3,8 @@
 
 use homing::atlas::{Atlas, AtlasCamera};
 use homing::system::{RunOptions, run};
-use homing_datasets::scenarios;
-use homing_datasets::sensor::SensorOptions;
-use homing_datasets::writer::{GenOptions, generate};
-use std::path::Path;
 
-fn synth(name: &str, dir: &Path) {
-    let sc = scenarios::build(name, 1).unwrap();
-    let opts = GenOptions {
-        out: dir.to_path_buf(),
-        small: true,
-        seed: 1,
-        sensor: SensorOptions::realistic(),
-        max_frames: None,
-    };
-    generate(&sc, &opts).unwrap();
-}
+mod common;
 
 fn ate(s: &homing::output::Summary) -> f64 {
     s.evaluation.as_ref().unwrap()["ate"]["stats"]["rmse"]
@@ -30,7 +16,7 @@ fn ate(s: &homing::output::Summary) -> f64 {
 fn loop_is_closed_and_corrects_the_drift() {
     let tmp = tempfile::tempdir().unwrap();
     let seq = tmp.path().join("loop");
-    synth("loop", &seq);
+    common::synth_small("loop", &seq, None);
     let atlas = tmp.path().join("atlas.bin");
     let with = run(&RunOptions {
         sequence: seq.clone(),
@@ -89,7 +75,7 @@ fn loop_is_closed_and_corrects_the_drift() {
 fn aliasing_leaves_no_wrong_closure_standing() {
     let tmp = tempfile::tempdir().unwrap();
     let seq = tmp.path().join("aliasing");
-    synth("aliasing", &seq);
+    common::synth_small("aliasing", &seq, None);
     let s = run(&RunOptions {
         sequence: seq,
         out: tmp.path().join("run"),

@@ -85,3 +85,21 @@ pub fn assert_clear_error(ok: bool, stderr: &str, needle: &str) {
         "error does not name '{needle}': {stderr}"
     );
 }
+
+/// Generates synthetic scenario `name` (seed 1, realistic sensor) at 320×240, keeping every
+/// `stride`-th frame (`None`: the scenario's own `--small` stride).
+pub fn synth_small(name: &str, dir: &Path, stride: Option<usize>) {
+    use homing_datasets::{scenarios, sensor::SensorOptions, writer};
+    let mut sc = scenarios::build(name, 1).unwrap();
+    if let Some(s) = stride {
+        sc.small_stride = s;
+    }
+    let opts = writer::GenOptions {
+        out: dir.to_path_buf(),
+        small: true,
+        seed: 1,
+        sensor: SensorOptions::realistic(),
+        max_frames: None,
+    };
+    writer::generate(&sc, &opts).unwrap();
+}
