@@ -698,6 +698,8 @@ pub enum CameraSource {
     ConfigFile(PathBuf),
     SequenceFile(PathBuf),
     FolderName(&'static str),
+    /// A ROS 2 bag's CameraInfo or stored camera; the text says which.
+    Bag(String),
 }
 
 impl std::fmt::Display for CameraSource {
@@ -709,6 +711,7 @@ impl std::fmt::Display for CameraSource {
                 f,
                 "built-in TUM {n} camera (the folder name says {n}; pass --config to override)"
             ),
+            Self::Bag(s) => f.write_str(s),
         }
     }
 }

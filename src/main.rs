@@ -10,6 +10,8 @@ use homing::system::{RunOptions, run};
 use std::path::PathBuf;
 use tracing_subscriber::EnvFilter;
 
+mod cli_progress;
+
 #[derive(Parser)]
 #[command(
     name = "homing",
@@ -37,6 +39,21 @@ enum Cmd {
     ///
     /// Example: homing eval --gt seq/groundtruth.txt --est out/trajectory.txt --plot ate.png
     Eval(EvalArgs),
+    /// Write a self-contained HTML report of a run: trajectory vs ground truth, error over
+    /// time with the state timeline, per-stage timing, map and closure statistics.
+    ///
+    /// Example: homing report out/fr1_xyz --out out/fr1_xyz/report.html
+    Report {
+        /// A `homing run` output folder.
+        #[arg(value_name = "OUTDIR")]
+        dir: PathBuf,
+        /// Ground truth, TUM format (default: the run's sequence's groundtruth.txt, if any).
+        #[arg(long)]
+        gt: Option<PathBuf>,
+        /// Where to write the report (default: OUTDIR/report.html).
+        #[arg(long, value_name = "FILE.html")]
+        out: Option<PathBuf>,
+    },
     /// Benchmarks that print numbers (per-stage ms/frame, fps, ATE).
     ///
     /// Example: homing bench tracking --sequence data/rgbd_dataset_freiburg1_xyz --out out/bench
@@ -59,6 +76,11 @@ enum Cmd {
         #[arg(long)]
         png: Option<PathBuf>,
     },
+    /// Convert between sequence formats.
+    ///
+    /// Example: homing convert tum-to-mcap data/rgbd_dataset_freiburg1_xyz fr1_xyz.mcap
+    #[command(subcommand)]
+    Convert(ConvertCmd),
     /// Print the default configuration, or check a config file and print it resolved.
     ///
     /// Example: homing config --check my.toml
@@ -66,6 +88,23 @@ enum Cmd {
         /// A config file to validate.
         #[arg(long)]
         check: Option<PathBuf>,
+    },
+}
+
+#[derive(Subcommand)]
+enum ConvertCmd {
+    /// Write a ROS 2 bag (MCAP, cdr) from a TUM folder: rgb8 images on
+    /// /camera/rgb/image_color, 16UC1 depth on /camera/depth/image, CameraInfo on
+    /// /camera/rgb/camera_info (when the camera is known), ground truth on /groundtruth (JSON).
+    TumToMcap {
+        /// TUM RGB-D folder.
+        dir: PathBuf,
+        /// The bag to write.
+        out: PathBuf,
+        /// Depth in millimetres (ROS's 16UC1 convention, rounded) instead of the TUM values
+        /// with their scale in the channel metadata (lossless, read back exactly by homing).
+        #[arg(long)]
+        depth_mm: bool,
     },
 }
 
@@ -114,8 +153,27 @@ enum BenchCmd {
 #[derive(Args)]
 struct RunArgs {
     /// TUM RGB-D folder (rgb.txt, depth.txt, rgb/, depth/, optional groundtruth.txt).
+    #[arg(long, required_unless_present = "mcap")]
+    sequence: Option<PathBuf>,
+    /// Read a ROS 2 bag in MCAP instead of --sequence (sensor_msgs/msg/Image in cdr).
+    #[arg(long, value_name = "BAG.mcap", conflicts_with = "sequence", requires_all = ["image_topic", "depth_topic"])]
+    mcap: Option<PathBuf>,
+    /// With --mcap: the colour image topic (rgb8, bgr8 or mono8).
+    #[arg(long, value_name = "TOPIC")]
+    image_topic: Option<String>,
+    /// With --mcap: the depth image topic (16UC1 millimetres or 32FC1 metres).
+    #[arg(long, value_name = "TOPIC")]
+    depth_topic: Option<String>,
+    /// With --mcap: a sensor_msgs/msg/CameraInfo topic for intrinsics and distortion.
+    #[arg(long, value_name = "TOPIC")]
+    camera_info_topic: Option<String>,
+    /// Also write OUTDIR/run.mcap: poses, states, per-frame statistics, transitions (Foxglove).
     #[arg(long)]
-    sequence: PathBuf,
+    mcap_log: bool,
+    /// With --mcap-log: per-stage milliseconds per frame too (measured, so run.mcap then
+    /// differs run to run).
+    #[arg(long, requires = "mcap_log")]
+    mcap_timing: bool,
     /// Output folder (created if missing).
     #[arg(long)]
     out: PathBuf,
@@ -212,13 +270,21 @@ fn main() {
         .with_env_filter(
             EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(level)),
         )
-        .with_writer(std::io::stderr)
+        .with_writer(|| cli_progress::LogWriter)
         .with_target(false)
         .init();
     let result = match cli.cmd {
-        Cmd::Run(a) => cmd_run(a),
+        Cmd::Run(a) => cmd_run(a, cli.quiet),
+        Cmd::Report { dir, gt, out } => {
+            homing::report::write_report(&dir, gt.as_deref(), out.as_deref())
+                .map(|p| println!("wrote {}", p.display()))
+                .map_err(Into::into)
+        }
         Cmd::Eval(a) => cmd_eval(a),
         Cmd::Config { check } => cmd_config(check),
+        Cmd::Convert(ConvertCmd::TumToMcap { dir, out, depth_mm }) => {
+            cmd_tum_to_mcap(&dir, &out, depth_mm)
+        }
         Cmd::States {
             dot: _,
             controller,
@@ -247,9 +313,20 @@ fn main() {
     }
 }
 
-fn cmd_run(a: RunArgs) -> Result<()> {
+fn cmd_run(a: RunArgs, quiet: bool) -> Result<()> {
+    let mcap = a.mcap.map(|bag| {
+        let topics = homing::io::mcap::McapTopics {
+            image: a.image_topic.unwrap_or_default(),
+            depth: a.depth_topic.unwrap_or_default(),
+            camera_info: a.camera_info_topic,
+        };
+        (bag, topics)
+    });
     let opts = RunOptions {
-        sequence: a.sequence,
+        sequence: a.sequence.unwrap_or_default(),
+        mcap,
+        mcap_log: a.mcap_log,
+        mcap_timing: a.mcap_timing,
         out: a.out.clone(),
         config: a.config,
         perturb: PerturbationSpec {
@@ -266,14 +343,18 @@ fn cmd_run(a: RunArgs) -> Result<()> {
         no_loop_closing: a.no_loop_closing,
         load_map: a.load_map,
         save_map: a.save_map,
+        progress: cli_progress::start(quiet),
     };
-    let s = run(&opts)?;
+    let s = run(&opts);
+    cli_progress::finish();
+    let s = s?;
     println!(
         "{} frames delivered ({} in the sequence), {} with a pose, {} keyframes, {} maps, final state {}",
         s.frames, s.sequence_frames, s.frames_with_pose, s.keyframes, s.maps, s.final_state
     );
-    if let Some(ev) = &s.evaluation {
-        println!("evaluation: {}", serde_json::to_string_pretty(ev)?);
+    if s.evaluation.is_some() {
+        // The full evaluation is in summary.json.
+        print!("results\n{}", homing::report::results_table(&s));
     }
     println!("outputs in {}", a.out.display());
     Ok(())
@@ -435,6 +516,23 @@ fn coverage_for(
         .collect();
     let eligible = eval::eligible_stamps(&stamps, gt, a.max_dt);
     Ok(Some(eval::coverage(&eligible, est, a.max_dt)))
+}
+
+fn cmd_tum_to_mcap(dir: &std::path::Path, out: &std::path::Path, depth_mm: bool) -> Result<()> {
+    let t0 = std::time::Instant::now();
+    let s = homing::io::mcap::tum_to_mcap(dir, out, depth_mm)?;
+    println!(
+        "wrote {}: {} colour, {} depth, {} CameraInfo ({}), {} ground-truth messages, {:.1} MB in {:.1} s",
+        out.display(),
+        s.colour,
+        s.depth,
+        s.camera_info,
+        s.camera.as_deref().unwrap_or("camera unknown"),
+        s.groundtruth,
+        s.bytes as f64 / 1e6,
+        t0.elapsed().as_secs_f64()
+    );
+    Ok(())
 }
 
 fn cmd_config(check: Option<PathBuf>) -> Result<()> {

@@ -107,6 +107,25 @@ impl Timing {
         self.samples.get(stage).map_or(0, Vec::len)
     }
 
+    /// Samples recorded so far, per stage (see [`Self::since`]).
+    pub fn counts(&self) -> BTreeMap<String, usize> {
+        self.samples
+            .iter()
+            .map(|(k, v)| (k.clone(), v.len()))
+            .collect()
+    }
+
+    /// Milliseconds per stage recorded after `counts` was taken (summed per stage).
+    pub fn since(&self, counts: &BTreeMap<String, usize>) -> BTreeMap<String, f64> {
+        self.samples
+            .iter()
+            .filter_map(|(k, v)| {
+                let from = counts.get(k).copied().unwrap_or(0);
+                (v.len() > from).then(|| (k.clone(), v[from..].iter().sum()))
+            })
+            .collect()
+    }
+
     /// The latest sample of `stage`.
     pub fn last(&self, stage: &str) -> Option<f64> {
         self.samples.get(stage).and_then(|v| v.last().copied())

@@ -4,10 +4,12 @@
 //!
 
 use crate::atlas::{Atlas, AtlasCamera};
-use crate::config::{Config, ControllerKind, resolve_camera};
+use crate::config::{CameraSource, Config, ControllerKind, resolve_camera};
 use crate::control::StateMachine;
 use crate::error::{Error, Result};
 use crate::eval::{self, Alignment, RpeUnit};
+use crate::io::Sequence;
+use crate::io::mcap::{McapSequence, McapTopics};
 use crate::io::perturb::{PerturbationSpec, PerturbedSequence};
 use crate::io::tum::{FrameSource, StampedPose, TumSequence};
 use crate::map::KfId;
@@ -46,6 +48,38 @@ pub struct RunOptions {
     pub load_map: Option<PathBuf>,
     /// Final saves the atlas here.
     pub save_map: Option<PathBuf>,
+    /// Read this ROS 2 bag (MCAP) instead of the TUM folder `sequence`, with these topics.
+    pub mcap: Option<(PathBuf, McapTopics)>,
+    /// Also write OUTDIR/run.mcap (poses, states, statistics, transitions).
+    pub mcap_log: bool,
+    /// Put per-stage milliseconds into run.mcap (measured: the file then differs run to run).
+    pub mcap_timing: bool,
+    /// Called after every processed frame (a progress bar). It only looks: the run's outputs
+    /// are the same with or without it.
+    pub progress: Option<ProgressHook>,
+}
+
+/// Where a run stands after a frame, for a progress display.
+#[derive(Debug, Clone, Copy)]
+pub struct Progress<'a> {
+    /// Frames processed so far.
+    pub delivered: usize,
+    /// Frames the (perturbed) sequence delivers in all.
+    pub total: usize,
+    /// The controller's state after the frame, as states.csv names it.
+    pub state: &'a str,
+    pub maps: usize,
+    pub keyframes: usize,
+}
+
+/// A progress callback (see [`RunOptions::progress`]).
+#[derive(Clone)]
+pub struct ProgressHook(pub std::sync::Arc<dyn Fn(&Progress<'_>) + Send + Sync>);
+
+impl std::fmt::Debug for ProgressHook {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("ProgressHook")
+    }
 }
 
 /// Runs a whole sequence and writes the run outputs. On a bad frame the outputs gathered so far
@@ -65,20 +99,11 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
     if opts.no_loop_closing {
         config.loop_closing.enabled = false;
     }
-    let (camera, source) = resolve_camera(&config, opts.config.as_deref(), &opts.sequence)?;
-    tracing::info!("{}", describe_camera(&camera, &source));
-    let seq = TumSequence::open(
-        &opts.sequence,
-        camera.width,
-        camera.height,
-        camera.depth_scale,
-        config.sequence.max_association_dt,
-        spec.mono,
-    )?;
-    if seq.unassociated > 0 {
+    let (seq, camera, source) = open_sequence(opts, &config, spec.mono)?;
+    if seq.unassociated() > 0 {
         tracing::warn!(
             "{} colour frames have no depth frame within {} s and are skipped",
-            seq.unassociated,
+            seq.unassociated(),
             config.sequence.max_association_dt
         );
     }
@@ -123,6 +148,7 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
     // up in the merged frame. Keyframe ids are unique across the atlas.
     let mut relative: Vec<(usize, f64, KfId, Isometry3<f64>)> = Vec::new();
     let mut poses_discarded = 0usize;
+    let mut frame_stats: Vec<crate::mcap_log::FrameStats> = Vec::new();
     let mut failure = None;
     let n = perturbed.len();
     let mut delivered = 0usize;
@@ -163,12 +189,23 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
             };
             let pre_ms = timing.last("preprocess").unwrap_or(0.0);
             let tracked = timing.count("track");
+            let counts = opts.mcap_timing.then(|| timing.counts());
             let out = machine.step(&m, &mut timing);
             timing.record("frame", t_frame.elapsed().as_secs_f64() * 1e3);
             // The front end's budget: extraction + tracking of one frame (mapping excluded).
             if timing.count("track") > tracked {
                 let track_ms = timing.last("track").unwrap_or(0.0);
                 timing.record("extract_track", pre_ms + track_ms);
+            }
+            if opts.mcap_log {
+                frame_stats.push(crate::mcap_log::FrameStats {
+                    frame: frame.index,
+                    t: frame.t,
+                    tracked_inliers: machine.track_inliers,
+                    keyframes: machine.atlas.n_keyframes(),
+                    maps: machine.atlas.maps.len(),
+                    timing_ms: counts.map(|c| timing.since(&c)),
+                });
             }
             if let Some(from) = out.invalidated_from {
                 let before = relative.len();
@@ -208,6 +245,15 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
                     transition: Some(t.transition.clone()),
                     flags: t.flags,
                     map: None,
+                });
+            }
+            if let Some(hook) = &opts.progress {
+                (hook.0)(&Progress {
+                    delivered,
+                    total: n,
+                    state: &out.state,
+                    maps: machine.atlas.maps.len(),
+                    keyframes: machine.atlas.n_keyframes(),
                 });
             }
             if machine.state == crate::control::State::Final {
@@ -259,6 +305,7 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
     let mut frame_map: std::collections::BTreeMap<usize, u32> = std::collections::BTreeMap::new();
     let mut trajectory: Vec<StampedPose> = Vec::with_capacity(relative.len());
     let mut pose_maps: Vec<(f64, u32)> = Vec::with_capacity(relative.len());
+    let mut posed: Vec<crate::mcap_log::PosedFrame> = Vec::new();
     for (frame, t, kf, rel) in &relative {
         let Some((map, kf_pose)) = kf_map.get(kf) else {
             poses_discarded += 1;
@@ -266,6 +313,14 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
         };
         frame_map.insert(*frame, *map);
         pose_maps.push((*t, *map));
+        if opts.mcap_log {
+            posed.push(crate::mcap_log::PosedFrame {
+                frame: *frame,
+                t: *t,
+                map: *map,
+                pose: (rel * kf_pose).inverse(),
+            });
+        }
         trajectory.push(StampedPose {
             t: *t,
             pose: (rel * kf_pose).inverse(),
@@ -314,7 +369,10 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
     };
     let summary = Summary {
         homing_version: env!("CARGO_PKG_VERSION"),
-        sequence: opts.sequence.clone(),
+        sequence: opts
+            .mcap
+            .as_ref()
+            .map_or_else(|| opts.sequence.clone(), |m| m.0.clone()),
         command: opts.command.clone(),
         sequence_frames: seq.len(),
         frames: delivered,
@@ -366,15 +424,46 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
     out.write_states(&states)?;
     out.write_closures(&closures)?;
     out.write_summary(&summary)?;
+    if opts.mcap_log {
+        crate::mcap_log::write(&out.path("run.mcap"), &states, &frame_stats, &posed)?;
+    }
     match failure {
         Some(e) => Err(e),
         None => Ok(summary),
     }
 }
 
+/// Opens the TUM folder or the bag and picks the camera.
+fn open_sequence(
+    opts: &RunOptions,
+    config: &Config,
+    mono: bool,
+) -> Result<(Sequence, crate::config::CameraConfig, CameraSource)> {
+    let max_dt = config.sequence.max_association_dt;
+    let Some((bag, topics)) = &opts.mcap else {
+        let (camera, source) = resolve_camera(config, opts.config.as_deref(), &opts.sequence)?;
+        tracing::info!("{}", describe_camera(&camera, &source));
+        let seq = TumSequence::open(
+            &opts.sequence,
+            camera.width,
+            camera.height,
+            camera.depth_scale,
+            max_dt,
+            mono,
+        )?;
+        return Ok((Sequence::Tum(seq), camera, source));
+    };
+    let mut seq = McapSequence::open(bag, topics, max_dt, mono)?;
+    let (camera, source) = seq.resolve_camera(config, opts.config.as_deref())?;
+    let source = CameraSource::Bag(source);
+    tracing::info!("{}", describe_camera(&camera, &source));
+    seq.set_size(camera.width, camera.height);
+    Ok((Sequence::Mcap(Box::new(seq)), camera, source))
+}
+
 /// ATE/RPE against the sequence's ground truth, or a note why there is none.
 fn evaluate(
-    seq: &TumSequence,
+    seq: &Sequence,
     est: &[StampedPose],
     spec: &PerturbationSpec,
     closures: &[ClosureRow],
@@ -382,7 +471,7 @@ fn evaluate(
 ) -> Result<Option<serde_json::Value>> {
     let Some(gt) = seq.groundtruth()? else {
         return Ok(Some(
-            serde_json::json!({"note": "the sequence has no groundtruth.txt"}),
+            serde_json::json!({"note": "the sequence has no ground truth (groundtruth.txt or /groundtruth)"}),
         ));
     };
     let align = if spec.mono {
@@ -390,7 +479,7 @@ fn evaluate(
     } else {
         Alignment::Se3
     };
-    let stamps: Vec<f64> = seq.frames.iter().map(|f| f.t).collect();
+    let stamps: Vec<f64> = seq.stamps();
     let eligible = eval::eligible_stamps(&stamps, &gt, 0.02);
     let coverage = eval::coverage(&eligible, est, 0.02);
     if est.len() < 3 {

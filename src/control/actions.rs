@@ -134,6 +134,7 @@ impl StateMachine {
         if let (true, true, Some(cur)) = (same_map, recent, self.current) {
             let map = &self.atlas.maps[&cur];
             let track = timing.time("track", || self.tracker.track(m, map));
+            self.track_inliers = Some(track.n_inliers);
             if track.able_to_track {
                 return Some(self.tracked(cur, &track, m));
             }
@@ -168,6 +169,7 @@ impl StateMachine {
         } else {
             let map = &self.atlas.maps[&cur];
             let track = timing.time("track", || self.tracker.track(m, map));
+            self.track_inliers = Some(track.n_inliers);
             tracing::debug!(
                 "frame {}: {:?}, {} inliers of {} key points, mean chi2 {:.3}",
                 m.frame,

@@ -111,6 +111,8 @@ pub struct StateMachine {
     pub stop_reason: Option<String>,
     invalidated_from: Option<usize>,
     mono: bool,
+    /// Inliers of the tracker's pose on the latest step's frame, if the tracker ran on it.
+    pub track_inliers: Option<usize>,
 }
 
 impl StateMachine {
@@ -153,6 +155,7 @@ impl StateMachine {
             stop_reason: None,
             invalidated_from: None,
             mono: config.sequence.mono,
+            track_inliers: None,
             geo,
             spec,
         }
@@ -203,6 +206,7 @@ impl StateMachine {
     /// Processes one measurement in the current state.
     pub fn step(&mut self, m: &Measurement, timing: &mut Timing) -> StepOutput {
         self.invalidated_from = None;
+        self.track_inliers = None;
         let activity = self.spec.state(self.state).activity;
         let pose = self.run_activity(activity, m, timing);
         let mut transitions = Vec::new();

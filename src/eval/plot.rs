@@ -14,7 +14,7 @@ const FONT: &[u8] = include_bytes!("fonts/DejaVuSans.ttf");
 const W: u32 = 1400;
 const H: u32 = 600;
 
-fn register_font() {
+pub(crate) fn register_font() {
     static ONCE: Once = Once::new();
     ONCE.call_once(|| {
         // Only fails on an invalid font, which the shipped one is not.
@@ -24,7 +24,9 @@ fn register_font() {
 
 /// The plane of largest spread of the ground truth (its first two principal axes), so that the
 /// "top view" is meaningful whatever the world frame's up axis is.
-fn principal_axes(points: &[Vector3<f64>]) -> (Vector3<f64>, Vector3<f64>, Vector3<f64>) {
+pub(crate) fn principal_axes(
+    points: &[Vector3<f64>],
+) -> (Vector3<f64>, Vector3<f64>, Vector3<f64>) {
     let n = points.len().max(1) as f64;
     let mean = points.iter().sum::<Vector3<f64>>() / n;
     let mut cov = Matrix3::zeros();
@@ -40,7 +42,7 @@ fn principal_axes(points: &[Vector3<f64>]) -> (Vector3<f64>, Vector3<f64>, Vecto
     (mean, a1, a2)
 }
 
-fn padded_range(v: impl Iterator<Item = f64> + Clone) -> std::ops::Range<f64> {
+pub(crate) fn padded_range(v: impl Iterator<Item = f64> + Clone) -> std::ops::Range<f64> {
     let lo = v.clone().fold(f64::INFINITY, f64::min);
     let hi = v.fold(f64::NEG_INFINITY, f64::max);
     let (lo, hi) = if lo.is_finite() { (lo, hi) } else { (0.0, 1.0) };
@@ -49,7 +51,7 @@ fn padded_range(v: impl Iterator<Item = f64> + Clone) -> std::ops::Range<f64> {
 }
 
 /// Widens one of the ranges so that a metre is as long on both axes of a `aspect` (w/h) panel.
-fn equal_aspect(
+pub(crate) fn equal_aspect(
     x: std::ops::Range<f64>,
     y: std::ops::Range<f64>,
     aspect: f64,

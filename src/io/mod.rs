@@ -1,6 +1,8 @@
-//! Input and output: TUM RGB-D folders and trajectories, perturbations of a sequence, and
-//! atomic writes of run outputs.
+//! Input and output: TUM RGB-D folders and trajectories, ROS 2 bags in MCAP, perturbations of
+//! a sequence, and atomic writes of run outputs.
 
+pub mod cdr;
+pub mod mcap;
 pub mod perturb;
 pub mod tum;
 
@@ -34,4 +36,55 @@ pub fn atomic_write(path: &Path, bytes: &[u8]) -> Result<()> {
         let _ = std::fs::remove_file(&tmp);
         Error::file(path, format!("cannot write: {e}"))
     })
+}
+
+/// A sequence to run on: a TUM folder or a ROS 2 bag. Both deliver frames through
+/// [`tum::FrameSource`], so perturbations apply to either.
+#[derive(Debug)]
+pub enum Sequence {
+    Tum(tum::TumSequence),
+    Mcap(Box<mcap::McapSequence>),
+}
+
+impl Sequence {
+    fn source(&self) -> &(dyn tum::FrameSource + Sync) {
+        match self {
+            Self::Tum(s) => s,
+            Self::Mcap(s) => s.as_ref(),
+        }
+    }
+
+    /// Colour frames without a depth partner (skipped).
+    pub fn unassociated(&self) -> usize {
+        match self {
+            Self::Tum(s) => s.unassociated,
+            Self::Mcap(s) => s.unassociated,
+        }
+    }
+
+    /// Every frame's time stamp.
+    pub fn stamps(&self) -> Vec<f64> {
+        let s = self.source();
+        (0..s.len()).map(|i| s.timestamp(i)).collect()
+    }
+
+    /// The ground truth: a TUM folder's groundtruth.txt, a bag's `/groundtruth` topic.
+    pub fn groundtruth(&self) -> Result<Option<Vec<tum::StampedPose>>> {
+        match self {
+            Self::Tum(s) => s.groundtruth(),
+            Self::Mcap(s) => Ok(s.groundtruth()),
+        }
+    }
+}
+
+impl tum::FrameSource for Sequence {
+    fn len(&self) -> usize {
+        self.source().len()
+    }
+    fn timestamp(&self, i: usize) -> f64 {
+        self.source().timestamp(i)
+    }
+    fn load(&self, i: usize) -> Result<tum::Frame> {
+        self.source().load(i)
+    }
 }

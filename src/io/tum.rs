@@ -468,7 +468,7 @@ pub fn parse_associations(text: &str, path: &Path) -> Result<Vec<(f64, String, f
     Ok(out)
 }
 
-fn open_image(path: &Path) -> Result<DynamicImage> {
+pub(crate) fn open_image(path: &Path) -> Result<DynamicImage> {
     let reader = image::ImageReader::open(path)
         .map_err(|e| Error::file(path, format!("cannot open image: {e}")))?
         .with_guessed_format()
