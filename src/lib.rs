@@ -26,3 +26,4 @@ pub mod preprocess;
 pub mod report;
 pub mod system;
 pub mod tracker;
+pub mod viz;

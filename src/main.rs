@@ -167,6 +167,14 @@ struct RunArgs {
     /// With --mcap: a sensor_msgs/msg/CameraInfo topic for intrinsics and distortion.
     #[arg(long, value_name = "TOPIC")]
     camera_info_topic: Option<String>,
+    /// Log the run to a rerun recording (image and keypoints, pose, trajectory, maps,
+    /// closures, state). Needs a build with `--features rerun`.
+    #[arg(long, value_name = "FILE.rrd", conflicts_with = "rerun_connect")]
+    rerun: Option<PathBuf>,
+    /// Stream the run to a live rerun viewer, e.g. 127.0.0.1:9876 (start `rerun` first).
+    /// Needs a build with `--features rerun`.
+    #[arg(long, value_name = "ADDR")]
+    rerun_connect: Option<String>,
     /// Also write OUTDIR/run.mcap: poses, states, per-frame statistics, transitions (Foxglove).
     #[arg(long)]
     mcap_log: bool,
@@ -343,6 +351,11 @@ fn cmd_run(a: RunArgs, quiet: bool) -> Result<()> {
         no_loop_closing: a.no_loop_closing,
         load_map: a.load_map,
         save_map: a.save_map,
+        rerun: match (a.rerun, a.rerun_connect) {
+            (Some(f), _) => Some(homing::viz::RerunTarget::File(f)),
+            (None, Some(addr)) => Some(homing::viz::RerunTarget::Connect(addr)),
+            (None, None) => None,
+        },
         progress: cli_progress::start(quiet),
     };
     let s = run(&opts);

@@ -54,6 +54,8 @@ pub struct RunOptions {
     pub mcap_log: bool,
     /// Put per-stage milliseconds into run.mcap (measured: the file then differs run to run).
     pub mcap_timing: bool,
+    /// Also log the run to rerun (a file or a live viewer); needs the `rerun` feature.
+    pub rerun: Option<crate::viz::RerunTarget>,
     /// Called after every processed frame (a progress bar). It only looks: the run's outputs
     /// are the same with or without it.
     pub progress: Option<ProgressHook>,
@@ -118,6 +120,14 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
         bf: camera.fx * VIRTUAL_BASELINE_M,
     };
     let mut pre = Preprocessor::new(&camera, &config.orb)?;
+    let mut viz = match &opts.rerun {
+        Some(target) => Some(crate::viz::Visualizer::open(
+            target,
+            &intr,
+            (camera.width, camera.height),
+        )?),
+        None => None,
+    };
     let mut machine = StateMachine::new(&config, &camera, intr);
     if opts.threaded {
         machine.set_threaded();
@@ -206,6 +216,13 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
                     maps: machine.atlas.maps.len(),
                     timing_ms: counts.map(|c| timing.since(&c)),
                 });
+            }
+            if let Some(v) = viz.as_mut() {
+                if let Err(e) = timing.time("visualize", || v.log_frame(&frame, &m, &machine, &out))
+                {
+                    failure = Some(e);
+                    break;
+                }
             }
             if let Some(from) = out.invalidated_from {
                 let before = relative.len();
@@ -424,6 +441,9 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
     out.write_states(&states)?;
     out.write_closures(&closures)?;
     out.write_summary(&summary)?;
+    if let Some(v) = viz {
+        v.finish()?;
+    }
     if opts.mcap_log {
         crate::mcap_log::write(&out.path("run.mcap"), &states, &frame_stats, &posed)?;
     }

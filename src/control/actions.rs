@@ -135,6 +135,7 @@ impl StateMachine {
             let map = &self.atlas.maps[&cur];
             let track = timing.time("track", || self.tracker.track(m, map));
             self.track_inliers = Some(track.n_inliers);
+            self.track_matched = track.matches.iter().map(Option::is_some).collect();
             if track.able_to_track {
                 return Some(self.tracked(cur, &track, m));
             }
@@ -170,6 +171,7 @@ impl StateMachine {
             let map = &self.atlas.maps[&cur];
             let track = timing.time("track", || self.tracker.track(m, map));
             self.track_inliers = Some(track.n_inliers);
+            self.track_matched = track.matches.iter().map(Option::is_some).collect();
             tracing::debug!(
                 "frame {}: {:?}, {} inliers of {} key points, mean chi2 {:.3}",
                 m.frame,

@@ -113,6 +113,9 @@ pub struct StateMachine {
     mono: bool,
     /// Inliers of the tracker's pose on the latest step's frame, if the tracker ran on it.
     pub track_inliers: Option<usize>,
+    /// Which of the latest frame's keypoints the tracker matched to a map point (empty when it
+    /// did not run); for the visualiser.
+    pub track_matched: Vec<bool>,
 }
 
 impl StateMachine {
@@ -156,6 +159,7 @@ impl StateMachine {
             invalidated_from: None,
             mono: config.sequence.mono,
             track_inliers: None,
+            track_matched: Vec::new(),
             geo,
             spec,
         }
@@ -207,6 +211,7 @@ impl StateMachine {
     pub fn step(&mut self, m: &Measurement, timing: &mut Timing) -> StepOutput {
         self.invalidated_from = None;
         self.track_inliers = None;
+        self.track_matched.clear();
         let activity = self.spec.state(self.state).activity;
         let pose = self.run_activity(activity, m, timing);
         let mut transitions = Vec::new();
