@@ -26,4 +26,5 @@ pub mod preprocess;
 pub mod report;
 pub mod system;
 pub mod tracker;
+pub mod two_view;
 pub mod viz;
