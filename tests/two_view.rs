@@ -556,6 +556,8 @@ fn same_input_and_seed_give_identical_output() {
     assert_eq!(a, b);
 }
 
+/// Prints the time per call (a number to read, not to assert: tests never assert on time);
+/// asserts only that 500 matches of a good pair initialise.
 #[test]
 fn timing_500_matches() {
     let (r, c2) = moderate_motion();
@@ -574,6 +576,5 @@ fn timing_500_matches() {
         let ms = t0.elapsed().as_secs_f64() * 1e3 / runs as f64;
         println!("initialize_two_view, 500 matches, 200 iterations ({name}): {ms:.1} ms per call");
         assert_eq!(ok, runs);
-        assert!(ms < 2000.0);
     }
 }
