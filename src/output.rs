@@ -126,6 +126,18 @@ impl Timing {
             .collect()
     }
 
+    /// Every sample as CSV (`stage,ms`, one row per call in the order recorded), for the
+    /// report's histograms: summary.json keeps only the statistics.
+    pub fn samples_csv(&self) -> String {
+        let mut out = String::from("stage,ms\n");
+        for (stage, v) in &self.samples {
+            for ms in v {
+                out.push_str(&format!("{stage},{ms:.4}\n"));
+            }
+        }
+        out
+    }
+
     /// The latest sample of `stage`.
     pub fn last(&self, stage: &str) -> Option<f64> {
         self.samples.get(stage).and_then(|v| v.last().copied())
@@ -299,6 +311,12 @@ impl RunOutputs {
             );
         }
         atomic_write(&self.path("closures.csv"), s.as_bytes())
+    }
+
+    /// `timing.csv`: every per-stage sample (measured, so it differs run to run, like the
+    /// timing in summary.json).
+    pub fn write_timing(&self, timing: &Timing) -> Result<()> {
+        atomic_write(&self.path("timing.csv"), timing.samples_csv().as_bytes())
     }
 
     pub fn write_summary(&self, summary: &Summary) -> Result<()> {

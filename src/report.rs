@@ -9,8 +9,8 @@
 //! - the trajectory's top view against the ground truth (equal aspect, keyframes marked);
 //! - the translational error over time, with the controller's state timeline as a coloured band
 //!   under it on the same time axis (one colour per state, legend);
-//! - the per-stage timing (median / p90 / max table, and a chart of them: per-frame samples are
-//!   not stored in the run outputs, so there is no histogram);
+//! - the per-stage timing: median / p90 / max table and chart from summary.json, and
+//!   histograms of the per-call samples from timing.csv;
 //! - map and closure statistics, and the closure candidates.
 //!
 //! Plots are PNGs rendered in memory with plotters (the bundled DejaVu font) and embedded as
@@ -49,6 +49,39 @@ pub struct RunData {
     pub pose_maps: Vec<(f64, u32)>,
     /// Ground truth and where it came from.
     pub gt: Option<(PathBuf, Vec<StampedPose>)>,
+    /// Per-stage samples from timing.csv (empty for runs written before it existed).
+    pub timing_samples: BTreeMap<String, Vec<f64>>,
+}
+
+/// Reads timing.csv (`stage,ms` per call); a missing file is no samples.
+pub fn read_timing_samples(path: &Path) -> Result<BTreeMap<String, Vec<f64>>> {
+    let mut out: BTreeMap<String, Vec<f64>> = BTreeMap::new();
+    if !path.exists() {
+        return Ok(out);
+    }
+    let text = crate::error::read_text(path)?;
+    for (i, line) in text.lines().enumerate() {
+        if i == 0 {
+            if line.trim() != "stage,ms" {
+                return Err(Error::parse(path, 1, "expected the header `stage,ms`"));
+            }
+            continue;
+        }
+        if line.trim().is_empty() {
+            continue;
+        }
+        let (stage, ms) = line
+            .rsplit_once(',')
+            .ok_or_else(|| Error::parse(path, i + 1, "expected `stage,ms`"))?;
+        let ms: f64 = ms
+            .trim()
+            .parse()
+            .ok()
+            .filter(|v: &f64| v.is_finite() && *v >= 0.0)
+            .ok_or_else(|| Error::parse(path, i + 1, format!("`{ms}` is not a duration in ms")))?;
+        out.entry(stage.trim().to_string()).or_default().push(ms);
+    }
+    Ok(out)
 }
 
 /// Reads a run's output folder; `gt` overrides the sequence's `groundtruth.txt`.
@@ -82,6 +115,7 @@ pub fn load_run(dir: &Path, gt: Option<&Path>) -> Result<RunData> {
     let states = read_states(&dir.join("states.csv"))?;
     let pose_maps = read_state_maps(&dir.join("states.csv"))?;
     let closures = read_closures(&dir.join("closures.csv"))?;
+    let timing_samples = read_timing_samples(&dir.join("timing.csv"))?;
     let gt_path = match gt {
         Some(p) => Some(p.to_path_buf()),
         None => summary
@@ -109,6 +143,7 @@ pub fn load_run(dir: &Path, gt: Option<&Path>) -> Result<RunData> {
         closures,
         pose_maps,
         gt,
+        timing_samples,
     })
 }
 
@@ -852,6 +887,89 @@ fn plot_timing(rows: &[TimingRow]) -> Result<Png> {
     })
 }
 
+/// Stages shown as histograms: those that run once per frame or per keyframe.
+const HISTOGRAM_STAGES: [&str; 6] = [
+    "frame",
+    "load",
+    "preprocess",
+    "track",
+    "extract_track",
+    "map",
+];
+
+/// Per-stage histograms of the per-call milliseconds (timing.csv), two per row, 30 bins from 0
+/// to the 99th percentile (calls above it are counted in the last bin), median marked.
+fn plot_timing_histograms(samples: &BTreeMap<String, Vec<f64>>) -> Result<Option<Png>> {
+    let stages: Vec<(&str, &Vec<f64>)> = HISTOGRAM_STAGES
+        .iter()
+        .filter_map(|k| samples.get(*k).map(|v| (*k, v)))
+        .filter(|(_, v)| v.len() >= 5)
+        .collect();
+    if stages.is_empty() {
+        return Ok(None);
+    }
+    const W: u32 = 1000;
+    const ROW: u32 = 230;
+    let rows = stages.len().div_ceil(2) as u32;
+    let png = render(W, ROW * rows, |root| {
+        let cells = root.split_evenly((rows as usize, 2));
+        for ((stage, v), cell) in stages.iter().zip(cells.iter()) {
+            let mut sorted = (*v).clone();
+            sorted.sort_by(f64::total_cmp);
+            let pick = |q: f64| sorted[((sorted.len() - 1) as f64 * q).round() as usize];
+            let median = pick(0.5);
+            let hi = (pick(0.99) * 1.05).max(1e-3);
+            const BINS: usize = 30;
+            let width = hi / BINS as f64;
+            let mut counts = [0u32; BINS];
+            for x in &sorted {
+                counts[((x / width) as usize).min(BINS - 1)] += 1;
+            }
+            let top = counts.iter().copied().max().unwrap_or(1).max(1) as f64 * 1.1;
+            let mut c = ChartBuilder::on(&cell.margin(8, 8, 8, 16))
+                .caption(
+                    format!("{stage}: {} calls, median {median:.2} ms", v.len()),
+                    ("sans-serif", 17),
+                )
+                .x_label_area_size(36)
+                .y_label_area_size(48)
+                .build_cartesian_2d(0.0..hi, 0.0..top)
+                .map_err(draw_err)?;
+            c.configure_mesh()
+                .disable_x_mesh()
+                .x_desc("ms per call")
+                .y_desc("calls")
+                .y_label_formatter(&|v: &f64| format!("{v:.0}"))
+                .label_style(("sans-serif", 13))
+                .axis_desc_style(("sans-serif", 14))
+                .draw()
+                .map_err(draw_err)?;
+            let blue = RGBColor(31, 119, 180);
+            c.draw_series(
+                counts
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, n)| **n > 0)
+                    .map(|(i, n)| {
+                        let x0 = i as f64 * width;
+                        let mut r =
+                            Rectangle::new([(x0, 0.0), (x0 + width, *n as f64)], blue.filled());
+                        r.set_margin(0, 0, 1, 1);
+                        r
+                    }),
+            )
+            .map_err(draw_err)?;
+            c.draw_series(std::iter::once(PathElement::new(
+                vec![(median, 0.0), (median, top)],
+                BLACK.stroke_width(2),
+            )))
+            .map_err(draw_err)?;
+        }
+        Ok(())
+    })?;
+    Ok(Some(png))
+}
+
 // ---------------------------------------------------------------------------------------------
 // HTML
 
@@ -1054,8 +1172,8 @@ pub fn render_html(run: &RunData) -> Result<String> {
     } else {
         let _ = writeln!(
             h,
-            "<p>Milliseconds per call of each stage (<code>frame</code>: a whole frame). The run \
-             stores these statistics, not per-frame samples.</p>\n<table>\n<tr><th>stage</th><th>median ms</th><th>p90 ms</th><th>max ms</th><th>mean ms</th><th>calls</th></tr>"
+            "<p>Milliseconds per call of each stage (<code>frame</code>: a whole frame; \
+             <code>extract_track</code>: extraction + tracking, the front end's budget).</p>\n<table>\n<tr><th>stage</th><th>median ms</th><th>p90 ms</th><th>max ms</th><th>mean ms</th><th>calls</th></tr>"
         );
         for r in &timing {
             let _ = writeln!(
@@ -1072,6 +1190,22 @@ pub fn render_html(run: &RunData) -> Result<String> {
         let _ = writeln!(h, "</table>");
         let chart = plot_timing(&timing)?;
         let _ = writeln!(h, "{}", img(&chart, "per-stage timing"));
+        match plot_timing_histograms(&run.timing_samples)? {
+            Some(hist) => {
+                let _ = writeln!(
+                    h,
+                    "<p>Histograms of the per-call times (timing.csv; 30 bins up to the 99th \
+                     percentile, slower calls in the last bin; the line is the median).</p>\n{}",
+                    img(&hist, "per-stage timing histograms")
+                );
+            }
+            None => {
+                let _ = writeln!(
+                    h,
+                    "<p class=\"note\">No timing.csv (a run older than it): no histograms.</p>"
+                );
+            }
+        }
     }
     let _ = writeln!(h, "</section>");
 

@@ -440,6 +440,7 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
     out.write_keyframes(&keyframes)?;
     out.write_states(&states)?;
     out.write_closures(&closures)?;
+    out.write_timing(&timing)?;
     out.write_summary(&summary)?;
     if let Some(v) = viz {
         v.finish()?;

@@ -109,7 +109,11 @@ fn report_of_a_small_synthetic_run() {
         html.matches(" src=\"data:").count()
     );
     let pngs = embedded_pngs(&html);
-    assert_eq!(pngs.len(), 3, "top view, error + states, timing");
+    assert_eq!(
+        pngs.len(),
+        4,
+        "top view, error + states, timing, timing histograms"
+    );
     for (bytes, w, h) in &pngs {
         let img = image::load_from_memory_with_format(bytes, image::ImageFormat::Png)
             .expect("a PNG that decodes");
@@ -207,6 +211,13 @@ fn report_errors_name_the_file_and_line() {
     std::fs::write(kf.join("keyframes.txt"), "# header\n1.0 0 0 0 0 0 0 1\n").unwrap();
     let e = write_report(&kf, None, None).unwrap_err().to_string();
     assert!(e.contains("keyframes.txt:2:"), "{e}");
+
+    // timing.csv with a bad duration: file and line.
+    let tc = tmp.path().join("tc");
+    fake_run(&tc, good);
+    std::fs::write(tc.join("timing.csv"), "stage,ms\nframe,12.5\nframe,-3\n").unwrap();
+    let e = write_report(&tc, None, None).unwrap_err().to_string();
+    assert!(e.contains("timing.csv:3:"), "{e}");
 
     // A --gt that does not exist is named.
     let g = tmp.path().join("g");

@@ -44,18 +44,13 @@ fn options(seq: &Path, out: &Path, rrd: &Path) -> RunOptions {
 fn without_the_feature_rerun_is_a_clear_error() {
     let tmp = tempfile::tempdir().unwrap();
     let seq = tmp.path().join("desk");
-    common_tum(&seq);
+    sequence(&seq);
     let rrd = tmp.path().join("run.rrd");
     let e = run(&options(&seq, &tmp.path().join("out"), &rrd))
         .unwrap_err()
         .to_string();
     assert!(e.contains("--features rerun"), "{e}");
     assert!(!rrd.exists());
-}
-
-#[cfg(not(feature = "rerun"))]
-fn common_tum(seq: &Path) {
-    sequence(seq);
 }
 
 #[cfg(feature = "rerun")]
@@ -96,7 +91,11 @@ fn recording_reads_back_with_every_entity() {
         "{timelines:?}"
     );
     // Every delivered frame has its image, keypoints and state number.
-    assert_eq!(n("/world/camera/image/keypoints"), summary.frames, "{rows:?}");
+    assert_eq!(
+        n("/world/camera/image/keypoints"),
+        summary.frames,
+        "{rows:?}"
+    );
     assert_eq!(n("/state/index"), summary.frames, "{rows:?}");
     // Image: the static pinhole plus one image per frame.
     assert_eq!(n("/world/camera/image"), summary.frames + 1, "{rows:?}");
