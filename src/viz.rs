@@ -162,6 +162,30 @@ mod imp {
                     } else {
                         format!("rerun+http://{addr}/proxy")
                     };
+                    // The SDK connects lazily and would wait for ever at the end for a viewer
+                    // that is not there: check that something listens first.
+                    let authority = url
+                        .split("://")
+                        .nth(1)
+                        .and_then(|r| r.split('/').next())
+                        .unwrap_or("");
+                    let reachable = std::net::ToSocketAddrs::to_socket_addrs(authority)
+                        .ok()
+                        .into_iter()
+                        .flatten()
+                        .any(|a| {
+                            std::net::TcpStream::connect_timeout(
+                                &a,
+                                std::time::Duration::from_secs(2),
+                            )
+                            .is_ok()
+                        });
+                    if !reachable {
+                        return Err(Error::Invalid(format!(
+                            "--rerun-connect: no rerun viewer listens at {url} (start `rerun` \
+                             first, or write a file with --rerun FILE.rrd)"
+                        )));
+                    }
                     let rec = builder
                         .connect_grpc_opts(url.clone())
                         .map_err(|e| rr_err(&format!("cannot connect to {url}"), e))?;
@@ -347,9 +371,17 @@ mod imp {
 
         /// Flushes the recording; an `.rrd` gets its final name only now.
         pub fn finish(self) -> Result<()> {
-            self.rec
-                .flush_blocking()
-                .map_err(|e| rr_err("cannot flush the recording", e))?;
+            // A file flushes in well under this; a viewer that went away must not hang the run.
+            let flushed = self
+                .rec
+                .flush_with_timeout(std::time::Duration::from_secs(30));
+            match (&self.file, flushed) {
+                (_, Ok(())) => {}
+                (Some(_), Err(e)) => return Err(rr_err("cannot flush the recording", e)),
+                (None, Err(e)) => {
+                    tracing::warn!("rerun: the viewer did not take the whole recording: {e}")
+                }
+            }
             drop(self.rec);
             if let Some((tmp, path)) = &self.file {
                 std::fs::rename(tmp, path)
