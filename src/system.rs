@@ -532,7 +532,7 @@ fn evaluate(
         .iter()
         .zip(pose_maps)
         .filter(|(_, (_, m))| Some(*m) == largest)
-        .map(|(p, _)| p.clone())
+        .map(|(p, _)| *p)
         .collect();
     let largest_map_coverage = eval::coverage(&eligible, &largest_est, 0.02);
     serde_json::to_value(serde_json::json!({

