@@ -148,6 +148,40 @@ enum BenchCmd {
         #[arg(long)]
         config: Option<PathBuf>,
     },
+    /// The robustness benchmark (issue #9): every sequence under a grid of perturbations (none,
+    /// kidnapping at 1-3 places of 1-5 s, false frames at 1 % and 5 %, a dark stretch, depth
+    /// suppressed) and every controller, each run a child `homing run` whose command is
+    /// recorded. Writes OUT/robustness.csv, OUT/robustness.md (tables and verdicts on the
+    /// issue's targets) and OUT/runs/SEQUENCE/PERTURBATION/CONTROLLER/.
+    ///
+    /// Example: homing bench robustness --sequence data/fr1_xyz --out out/robustness
+    Robustness {
+        /// TUM RGB-D folders (repeatable).
+        #[arg(long, required = true, num_args = 1..)]
+        sequence: Vec<PathBuf>,
+        /// Run every row monocular (depth suppressed); no separate depth-suppressed row.
+        #[arg(long)]
+        mono: bool,
+        /// Only these controllers (repeatable); default: ours, orbslam2, proslam, ldso.
+        #[arg(long, value_enum)]
+        controller: Vec<ControllerKind>,
+        /// Runs at once (default: the core count).
+        #[arg(long)]
+        jobs: Option<usize>,
+        /// Reduced grid: no perturbation and one kidnapping (a pipeline check).
+        #[arg(long)]
+        quick: bool,
+        /// Output folder.
+        #[arg(long, default_value = "out/robustness")]
+        out: PathBuf,
+        /// Config file (TOML) for every run.
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Also run this generated case study (as `homing bench case-study --data DIR`) and
+        /// append its Table II to the report.
+        #[arg(long, value_name = "DIR")]
+        case_study: Option<PathBuf>,
+    },
 }
 
 #[derive(Args)]
@@ -314,6 +348,37 @@ fn main() {
             controller,
             config,
         }) => cmd_case_study(out, data, small, threaded, controller, config),
+        Cmd::Bench(BenchCmd::Robustness {
+            sequence,
+            mono,
+            controller,
+            jobs,
+            quick,
+            out,
+            config,
+            case_study,
+        }) => {
+            let opts = homing::bench::robustness::Options {
+                sequences: sequence,
+                mono,
+                controllers: controller,
+                jobs: jobs.unwrap_or(0),
+                quick,
+                out: out.clone(),
+                config,
+                case_study,
+                exe: None,
+            };
+            homing::bench::robustness::robustness(&opts)
+                .map(|(_, md)| {
+                    print!("\n{md}");
+                    println!(
+                        "\nwritten: {0}/robustness.csv, {0}/robustness.md, {0}/robustness.json",
+                        out.display()
+                    );
+                })
+                .map_err(Into::into)
+        }
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

@@ -525,10 +525,22 @@ fn evaluate(
     let closures = eval::run::check_closures(closures, &gt, 0.02);
     let (maps, largest) = eval::run::per_map_ate(&gt, est, pose_maps, align, 0.02);
     let largest_map = largest.and_then(|l| maps.iter().find(|m| m.map == l));
+    // Coverage of the largest map alone: frames posed in disconnected maps do not count, so a
+    // controller that starts a new map on every loss (PRoSLAM) is not credited for poses it
+    // cannot relate to the rest (the robustness benchmark's coverage). `est` and `pose_maps`
+    // are built together, pose by pose.
+    let largest_est: Vec<StampedPose> = est
+        .iter()
+        .zip(pose_maps)
+        .filter(|(_, (_, m))| Some(*m) == largest)
+        .map(|(p, _)| *p)
+        .collect();
+    let largest_map_coverage = eval::coverage(&eligible, &largest_est, 0.02);
     serde_json::to_value(serde_json::json!({
         "ate": ate,
         "rpe": rpe,
         "coverage": coverage,
+        "largest_map_coverage": largest_map_coverage,
         "closures": closures,
         "maps": maps,
         "largest_map": largest_map,

@@ -1,9 +1,11 @@
 //! Benchmarks that print numbers (never assert on them): `homing bench tracking` runs a
 //! sequence in both modes and reports per-stage milliseconds per frame, throughput against
 //! real time and the trajectory error; `homing bench case-study` reproduces the paper's
-//! Table II (see [`case_study`]).
+//! Table II (see [`case_study`]); `homing bench robustness` runs the perturbation grid of the
+//! paper's experiments under every controller (see [`robustness`]).
 
 pub mod case_study;
+pub mod robustness;
 
 use crate::error::Result;
 use crate::output::Summary;

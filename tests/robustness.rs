@@ -1,0 +1,171 @@
+//! `homing bench robustness --quick` on a tiny generated sequence: the CSV has its columns and
+//! one row per (perturbation, controller), every row records its command, and re-running a
+//! row's command reproduces its trajectory byte for byte.
+
+mod common;
+
+use homing_datasets::{scenarios, sensor::SensorOptions, writer};
+use std::path::Path;
+
+/// Splits one CSV line, honouring double quotes.
+fn csv_split(line: &str) -> Vec<String> {
+    let mut out = vec![String::new()];
+    let mut quoted = false;
+    let mut chars = line.chars().peekable();
+    while let Some(c) = chars.next() {
+        match (c, quoted) {
+            ('"', true) if chars.peek() == Some(&'"') => {
+                chars.next();
+                out.last_mut().unwrap().push('"');
+            }
+            ('"', _) => quoted = !quoted,
+            (',', false) => out.push(String::new()),
+            _ => out.last_mut().unwrap().push(c),
+        }
+    }
+    out
+}
+
+fn generate_desk(dir: &Path, frames: usize) {
+    let sc = scenarios::build("desk", 1).unwrap();
+    writer::generate(
+        &sc,
+        &writer::GenOptions {
+            out: dir.to_path_buf(),
+            small: true,
+            seed: 1,
+            sensor: SensorOptions::realistic(),
+            max_frames: Some(frames),
+        },
+    )
+    .unwrap();
+}
+
+#[test]
+fn quick_grid_rows_commands_and_reproduction() {
+    let tmp = tempfile::tempdir().unwrap();
+    let seq = tmp.path().join("desk");
+    // 72 frames at 15 Hz: 4.7 s, long enough for a 1 s kidnapping with 1 s tracked around it.
+    generate_desk(&seq, 72);
+    let out = tmp.path().join("bench");
+    let (ok, stdout, stderr) = common::homing(&[
+        "bench",
+        "robustness",
+        "--sequence",
+        seq.to_str().unwrap(),
+        "--quick",
+        "--controller",
+        "ours",
+        "--controller",
+        "proslam",
+        "--jobs",
+        "2",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(ok, "bench failed: {stderr}");
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    // A progress line per run, then the Markdown table.
+    assert_eq!(stdout.lines().filter(|l| l.starts_with('[')).count(), 4);
+    assert!(
+        stdout.contains("| perturbation | ours | proslam |"),
+        "{stdout}"
+    );
+    assert!(stdout.contains("kidnap-1x1s: ours"), "{stdout}");
+
+    let csv = std::fs::read_to_string(out.join("robustness.csv")).unwrap();
+    let mut lines = csv.lines();
+    let header = csv_split(lines.next().unwrap());
+    for col in [
+        "sequence",
+        "perturbation",
+        "controller",
+        "ate_m",
+        "coverage",
+        "maps",
+        "closures_accepted",
+        "closures_wrong",
+        "recovery_frames",
+        "final_state",
+        "wall_s",
+        "fps",
+        "command",
+    ] {
+        assert!(
+            header.iter().any(|h| h == col),
+            "no column {col}: {header:?}"
+        );
+    }
+    let col = |name: &str| header.iter().position(|h| h == name).unwrap();
+    let rows: Vec<Vec<String>> = lines.map(csv_split).collect();
+    assert!(rows.iter().all(|r| r.len() == header.len()), "{csv}");
+    let mut keys: Vec<(String, String)> = rows
+        .iter()
+        .map(|r| (r[col("perturbation")].clone(), r[col("controller")].clone()))
+        .collect();
+    keys.sort();
+    let expected: Vec<(String, String)> = [
+        ("kidnap-1x1s", "ours"),
+        ("kidnap-1x1s", "proslam"),
+        ("none", "ours"),
+        ("none", "proslam"),
+    ]
+    .iter()
+    .map(|(a, b)| (a.to_string(), b.to_string()))
+    .collect();
+    assert_eq!(keys, expected);
+    for r in &rows {
+        assert_eq!(r[col("sequence")], "desk");
+        let cmd = &r[col("command")];
+        assert!(cmd.contains(" run --sequence "), "{cmd}");
+        assert!(
+            cmd.contains(&format!("--controller {}", r[col("controller")])),
+            "{cmd}"
+        );
+        let cov: f64 = r[col("coverage")].parse().unwrap();
+        assert!((0.0..=1.0).contains(&cov), "{cov}");
+    }
+
+    // Re-run the kidnapped `ours` row by its recorded command: same trajectory, byte for byte.
+    let row = rows
+        .iter()
+        .find(|r| r[col("perturbation")] == "kidnap-1x1s" && r[col("controller")] == "ours")
+        .unwrap();
+    let cmd = &row[col("command")];
+    assert!(
+        !cmd.contains('\''),
+        "a temporary path needed quoting: {cmd}"
+    );
+    assert!(cmd.contains("--drop "), "{cmd}");
+    let argv: Vec<&str> = cmd.split_whitespace().collect();
+    let run_dir = out.join("runs/desk/kidnap-1x1s/ours");
+    let before = std::fs::read(run_dir.join("trajectory.txt")).unwrap();
+    assert!(!before.is_empty());
+    let status = std::process::Command::new(argv[0])
+        .args(&argv[1..])
+        .output()
+        .unwrap();
+    assert!(
+        status.status.success(),
+        "{}",
+        String::from_utf8_lossy(&status.stderr)
+    );
+    let after = std::fs::read(run_dir.join("trajectory.txt")).unwrap();
+    assert!(before == after, "the re-run's trajectory differs");
+}
+
+#[test]
+fn missing_sequence_is_a_clear_error() {
+    let tmp = tempfile::tempdir().unwrap();
+    let missing = tmp.path().join("nope");
+    let (ok, _, stderr) = common::homing(&[
+        "bench",
+        "robustness",
+        "--sequence",
+        missing.to_str().unwrap(),
+        "--quick",
+        "--out",
+        tmp.path().join("o").to_str().unwrap(),
+    ]);
+    common::assert_clear_error(ok, &stderr, "nope");
+}
