@@ -857,42 +857,6 @@ pub fn pose_from_json(v: &serde_json::Value) -> Option<StampedPose> {
     })
 }
 
-/// Writes `f`'s output to `path` atomically (a temporary file in the same folder, synced, then
-/// renamed), like [`crate::io::atomic_write`] but streaming.
-pub fn atomic_write_with(
-    path: &Path,
-    f: impl FnOnce(&mut std::io::BufWriter<File>) -> Result<()>,
-) -> Result<()> {
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d,
-        _ => Path::new("."),
-    };
-    let name = path
-        .file_name()
-        .ok_or_else(|| Error::file(path, "not a file path"))?;
-    let tmp = dir.join(format!(
-        ".{}.tmp.{}",
-        name.to_string_lossy(),
-        std::process::id()
-    ));
-    let result = (|| -> Result<()> {
-        let file =
-            File::create(&tmp).map_err(|e| Error::file(path, format!("cannot write: {e}")))?;
-        let mut w = std::io::BufWriter::new(file);
-        f(&mut w)?;
-        let file = w
-            .into_inner()
-            .map_err(|e| Error::file(path, format!("cannot write: {e}")))?;
-        file.sync_all()
-            .and_then(|_| std::fs::rename(&tmp, path))
-            .map_err(|e| Error::file(path, format!("cannot write: {e}")))
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result
-}
-
 /// MCAP writer options shared by homing's writers: zstd chunks, compressed on this thread
 /// (multi-threaded zstd output would depend on the machine's core count), so that the same
 /// input gives a byte-identical file.
@@ -976,7 +940,7 @@ pub fn tum_to_mcap(dir: &Path, out: &Path, depth_mm: bool) -> Result<ConvertStat
         ..Default::default()
     };
     let mcap_err = |e: ::mcap::McapError| Error::file(out, format!("cannot write MCAP: {e}"));
-    atomic_write_with(out, |w| {
+    crate::io::atomic_write_with(out, |w| {
         let mut mw =
             ::mcap::Writer::with_options(&mut *w, write_options("ros2")).map_err(mcap_err)?;
         let image_schema = mw
@@ -1141,20 +1105,7 @@ fn camera_info(cam: &CameraConfig, header: Header) -> CameraInfo {
 
 /// A colour PNG as `io::tum::load_rgb` reads it (grey expanded to RGB).
 fn png_rgb(path: &Path) -> Result<RgbImage> {
-    let img = open_image(path)?;
-    match img {
-        DynamicImage::ImageRgb8(i) => Ok(i),
-        DynamicImage::ImageRgba8(_)
-        | DynamicImage::ImageLuma8(_)
-        | DynamicImage::ImageLumaA8(_) => Ok(img.to_rgb8()),
-        other => Err(Error::file(
-            path,
-            format!(
-                "colour image has pixel type {:?}; expected 8-bit RGB or grey",
-                other.color()
-            ),
-        )),
-    }
+    crate::io::tum::to_rgb(path, open_image(path)?)
 }
 
 /// A 16-bit depth PNG's raw values.

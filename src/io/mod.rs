@@ -14,6 +14,18 @@ use std::path::Path;
 /// then renamed over the target. A crash mid-write never leaves a half-written result, and an
 /// earlier complete file stays until the new one is whole.
 pub fn atomic_write(path: &Path, bytes: &[u8]) -> Result<()> {
+    atomic_write_with(path, |w| {
+        w.write_all(bytes)
+            .map_err(|e| Error::file(path, format!("cannot write: {e}")))
+    })
+}
+
+/// Writes `f`'s output to `path` atomically (a temporary file in the same folder, synced, then
+/// renamed), streaming; [`atomic_write`] for bytes in memory.
+pub fn atomic_write_with(
+    path: &Path,
+    f: impl FnOnce(&mut std::io::BufWriter<std::fs::File>) -> Result<()>,
+) -> Result<()> {
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d,
         _ => Path::new("."),
@@ -26,16 +38,22 @@ pub fn atomic_write(path: &Path, bytes: &[u8]) -> Result<()> {
         name.to_string_lossy(),
         std::process::id()
     ));
-    let write = || -> std::io::Result<()> {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        std::fs::rename(&tmp, path)
-    };
-    write().map_err(|e| {
+    let result = (|| -> Result<()> {
+        let file = std::fs::File::create(&tmp)
+            .map_err(|e| Error::file(path, format!("cannot write: {e}")))?;
+        let mut w = std::io::BufWriter::new(file);
+        f(&mut w)?;
+        let file = w
+            .into_inner()
+            .map_err(|e| Error::file(path, format!("cannot write: {e}")))?;
+        file.sync_all()
+            .and_then(|_| std::fs::rename(&tmp, path))
+            .map_err(|e| Error::file(path, format!("cannot write: {e}")))
+    })();
+    if result.is_err() {
         let _ = std::fs::remove_file(&tmp);
-        Error::file(path, format!("cannot write: {e}"))
-    })
+    }
+    result
 }
 
 /// A sequence to run on: a TUM folder or a ROS 2 bag. Both deliver frames through

@@ -495,6 +495,11 @@ fn check_size(path: &Path, w: u32, h: u32, width: u32, height: u32) -> Result<()
 pub fn load_rgb(path: &Path, width: u32, height: u32) -> Result<RgbImage> {
     let img = open_image(path)?;
     check_size(path, img.width(), img.height(), width, height)?;
+    to_rgb(path, img)
+}
+
+/// An 8-bit RGB image from a decoded one (grey expanded); other pixel types are errors.
+pub(crate) fn to_rgb(path: &Path, img: DynamicImage) -> Result<RgbImage> {
     match img {
         DynamicImage::ImageRgb8(i) => Ok(i),
         DynamicImage::ImageRgba8(_)
