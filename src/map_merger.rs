@@ -11,8 +11,25 @@ use crate::optim::{
 };
 use crate::preprocess::{ImageGeometry, Measurement, hamming};
 use crate::tracker::TrackResult;
-use nalgebra::Point3;
+use crate::two_view::{k_matrix, projection_matrix, triangulate};
+use nalgebra::{Isometry3, Matrix3, Point3, Vector2, Vector3};
 use std::collections::{BTreeMap, BTreeSet};
+
+/// Monocular keyframe decision: a frame tracking fewer than this share of its reference
+/// keyframe's points becomes a keyframe (ORB-SLAM's monocular `thRefRatio`).
+const MONO_KEYFRAME_TRACKED_RATIO: f64 = 0.9;
+/// Monocular triangulation: covisible keyframes paired with a new keyframe (ORB-SLAM: 20).
+const TRIANGULATION_NEIGHBOURS: usize = 20;
+/// Largest Hamming distance of a triangulation match (ORB-SLAM's TH_LOW).
+const TRIANGULATION_MAX_DISTANCE: u32 = 50;
+/// Best/second-best ratio of a triangulation match. ORB-SLAM restricts the candidates to the
+/// same vocabulary node instead; without a vocabulary, the ratio on the epipolar candidates
+/// rejects the ambiguous ones.
+const TRIANGULATION_RATIO: f64 = 0.8;
+/// χ² 95 % quantile, 1 degree of freedom: distance to the epipolar line.
+const CHI2_EPIPOLAR: f64 = 3.84;
+/// Rays closer than this cosine do not triangulate well (ORB-SLAM: 0.9998, about 1.1°).
+const MAX_COS_PARALLAX: f64 = 0.9998;
 
 pub struct MapMerger {
     cfg: MappingConfig,
@@ -25,6 +42,9 @@ pub struct MapMerger {
     worker: Option<BaWorker>,
     /// Solver times of jobs applied while waiting inside `insert_keyframe`, for `poll`.
     waited_ms: Vec<f64>,
+    /// Monocular: points come from triangulation between keyframes instead of depth, and the
+    /// keyframe and culling criteria are ORB-SLAM's monocular ones.
+    mono: bool,
 }
 
 /// A bundle-adjustment problem cut out of a map, with what is needed to write it back.
@@ -132,7 +152,14 @@ impl MapMerger {
             recent: Vec::new(),
             worker: None,
             waited_ms: Vec::new(),
+            mono: false,
         }
+    }
+
+    /// Monocular mode (see [`MapMerger::create_new_points`]).
+    pub fn monocular(mut self, mono: bool) -> Self {
+        self.mono = mono;
+        self
     }
 
     /// Threaded mode: local BA on its own thread from now on.
@@ -238,7 +265,11 @@ impl MapMerger {
             .filter(|&i| close(i) && track.matches[i].is_none())
             .count();
         let need_close = tracked_close < 100 && untracked_close > 70;
-        let ratio = if map.keyframes.len() < 2 {
+        // Monocular: ORB-SLAM's 0.9. Without depth a keyframe is the only way to create
+        // points, so keyframes must come often enough for the triangulation to keep up.
+        let ratio = if self.mono {
+            MONO_KEYFRAME_TRACKED_RATIO
+        } else if map.keyframes.len() < 2 {
             0.4
         } else {
             self.cfg.keyframe_tracked_ratio
@@ -298,6 +329,10 @@ impl MapMerger {
         }
         map.update_covisibility(kf);
         report.culled = self.cull(map, kf);
+        if self.mono {
+            report.new_points += self.create_new_points(map, kf);
+            map.update_covisibility(kf);
+        }
         report.fused = self.fuse(map, kf);
         map.update_covisibility(kf);
         self.local_ba(map, kf, &mut report);
@@ -319,7 +354,9 @@ impl MapMerger {
             let age = current.saturating_sub(born);
             let weight = map.observation_weight(p);
             let found_ratio = p.found as f64 / p.visible.max(1) as f64;
-            if found_ratio < 0.25 || (age >= 2 && weight <= 3) {
+            // ORB-SLAM: at most 2 observations (monocular) or weight 3 (with depth) is too few.
+            let min_weight = if self.mono { 2 } else { 3 };
+            if found_ratio < 0.25 || (age >= 2 && weight <= min_weight) {
                 map.remove_point(pid);
                 culled += 1;
             } else if age < 3 {
@@ -328,6 +365,90 @@ impl MapMerger {
         }
         self.recent = keep;
         culled
+    }
+
+    /// Monocular: new map points by triangulating the unmatched keypoints of the new keyframe
+    /// `kf` with those of its best covisible keyframes (ORB-SLAM's `CreateNewMapPoints`).
+    /// Without depth this is the only source of points. A pair of keypoints is matched by
+    /// descriptor among the candidates near the epipolar line, and the point is kept only if
+    /// the rays have parallax, it lies in front of both cameras, reprojects within the χ²
+    /// gate in both, and its distances to the two cameras agree with the keypoints' pyramid
+    /// levels. Returns the number of points created.
+    fn create_new_points(&mut self, map: &mut Map, kf: KfId) -> usize {
+        let (sf, nl) = (self.geo.scale_factor, self.geo.n_levels);
+        let intr = self.geo.intr;
+        let neighbours = map.keyframes[&kf].best_covisible(TRIANGULATION_NEIGHBOURS);
+        let mut created = 0;
+        for n in neighbours {
+            let (k1, k2) = (&map.keyframes[&kf], &map.keyframes[&n]);
+            let (pose1, pose2) = (k1.pose_cw, k2.pose_cw);
+            let (o1, o2) = (k1.center(), k2.center());
+            // A baseline that is tiny relative to the scene gives no depth (ORB-SLAM: 1 %).
+            let Some(median) = median_depth(map, k2) else {
+                continue;
+            };
+            if (o1 - o2).norm() / median < 0.01 {
+                continue;
+            }
+            let pairs = match_for_triangulation(&self.geo, k1, k2);
+            let r1 = *pose1.rotation.to_rotation_matrix().matrix();
+            let r2 = *pose2.rotation.to_rotation_matrix().matrix();
+            let p1 = projection_matrix(&intr, &r1, &pose1.translation.vector);
+            let p2 = projection_matrix(&intr, &r2, &pose2.translation.vector);
+            for (i1, i2) in pairs {
+                let (k1, k2) = (&map.keyframes[&kf], &map.keyframes[&n]);
+                if k1.points[i1].is_some() || k2.points[i2].is_some() {
+                    continue; // claimed by an earlier neighbour
+                }
+                let (kp1, kp2) = (k1.keypoints[i1], k2.keypoints[i2]);
+                // Parallax of the viewing rays.
+                let ray = |pose: &Isometry3<f64>, uv: &Vector2<f64>| {
+                    let x =
+                        Vector3::new((uv.x - intr.cx) / intr.fx, (uv.y - intr.cy) / intr.fy, 1.0);
+                    pose.rotation.inverse() * x
+                };
+                let (ray1, ray2) = (ray(&pose1, &kp1.un), ray(&pose2, &kp2.un));
+                let cos = ray1.dot(&ray2) / (ray1.norm() * ray2.norm());
+                if !(cos > 0.0 && cos < MAX_COS_PARALLAX) {
+                    continue;
+                }
+                let Some(x) = triangulate(&p1, &p2, &kp1.un, &kp2.un) else {
+                    continue;
+                };
+                let ok = |pose: &Isometry3<f64>, kp: &crate::preprocess::Keypoint| {
+                    let pc = pose * Point3::from(x);
+                    if pc.z <= 0.0 {
+                        return false;
+                    }
+                    let Some(uv) = intr.project(&pc.coords) else {
+                        return false;
+                    };
+                    (uv - kp.un).norm_squared() * octave_information(kp.octave as u32)
+                        <= optim::CHI2_MONO
+                };
+                if !ok(&pose1, &kp1) || !ok(&pose2, &kp2) {
+                    continue;
+                }
+                // Scale consistency: the distance ratio must match the octave ratio.
+                let (d1, d2) = ((x - o1).norm(), (x - o2).norm());
+                if d1 <= 0.0 || d2 <= 0.0 {
+                    continue;
+                }
+                let ratio_dist = d2 / d1;
+                let ratio_octave =
+                    self.geo.scales[kp1.octave as usize] / self.geo.scales[kp2.octave as usize];
+                let factor = 1.5 * sf;
+                if ratio_dist * factor < ratio_octave || ratio_dist > ratio_octave * factor {
+                    continue;
+                }
+                let pid = map.add_point(kf, i1, x, sf, nl);
+                map.observe(n, i2, pid);
+                map.update_point(pid, sf, nl);
+                self.recent.push((pid, kf));
+                created += 1;
+            }
+        }
+        created
     }
 
     /// Projects the points of the best covisible keyframes into the new keyframe: a matching
@@ -408,6 +529,7 @@ impl MapMerger {
     fn local_ba(&mut self, map: &mut Map, kf: KfId, report: &mut MergeReport) {
         let mut local: Vec<KfId> = vec![kf];
         local.extend(map.keyframes[&kf].best_covisible(self.cfg.local_ba_window as usize - 1));
+        self.fix_scale_gauge(map, &mut local);
         let first = BaParams {
             iterations: 5,
             ..Default::default()
@@ -444,6 +566,20 @@ impl MapMerger {
         }
     }
 
+    /// Monocular: the map's second keyframe is held fixed too (removed from `free`). With only
+    /// the first keyframe fixed, the BA's gauge keeps a free scale, and while the window still
+    /// holds every keyframe the solver lets it drift (by tens of percent in one BA on fr1_xyz);
+    /// frame poses, stored relative to their keyframe, would then no longer agree with the
+    /// rescaled map. The pair's distance, set at initialisation, fixes the scale.
+    fn fix_scale_gauge(&self, map: &Map, free: &mut Vec<KfId>) {
+        if !self.mono {
+            return;
+        }
+        if let Some(&second) = map.keyframes.keys().nth(1) {
+            free.retain(|k| *k != second);
+        }
+    }
+
     /// Full BA over every keyframe of the map (the first one fixed for the gauge): the batch
     /// refinement of the Final state.
     pub fn global_ba(&self, map: &mut Map) -> Option<optim::BaReport> {
@@ -451,7 +587,8 @@ impl MapMerger {
         if iterations == 0 || map.keyframes.len() < 2 {
             return None;
         }
-        let all: Vec<KfId> = map.keyframes.keys().copied().collect();
+        let mut all: Vec<KfId> = map.keyframes.keys().copied().collect();
+        self.fix_scale_gauge(map, &mut all);
         let first = BaParams {
             iterations,
             ..Default::default()
@@ -614,4 +751,116 @@ pub fn apply_ba<'a>(
         }
     }
     Some(r)
+}
+
+/// Median depth of a keyframe's points in its camera (ORB-SLAM's scene median depth).
+fn median_depth(map: &Map, k: &crate::map::Keyframe) -> Option<f64> {
+    let mut z: Vec<f64> = k
+        .points
+        .iter()
+        .flatten()
+        .filter_map(|p| map.points.get(p))
+        .map(|p| (k.pose_cw * Point3::from(p.position)).z)
+        .collect();
+    if z.is_empty() {
+        return None;
+    }
+    z.sort_by(f64::total_cmp);
+    Some(z[(z.len() - 1) / 2]).filter(|m| *m > 0.0)
+}
+
+/// ORB-SLAM's `SearchForTriangulation` without a vocabulary: each keypoint of `k1` that has no
+/// point is compared with every keypoint of `k2` that has none; candidates must lie within
+/// the χ² gate of the epipolar line (σ of `k2`'s keypoint octave) and not next to the epipole
+/// (a point there has no depth), and the best must be clearly better than the second best.
+/// A keypoint of `k2` keeps its best match; a rotation histogram drops matches whose
+/// orientation change disagrees with the dominant ones. Sorted: deterministic.
+fn match_for_triangulation(
+    geo: &ImageGeometry,
+    k1: &crate::map::Keyframe,
+    k2: &crate::map::Keyframe,
+) -> Vec<(usize, usize)> {
+    let intr = &geo.intr;
+    // F12 with x1ᵀ F12 x2 = 0, from the relative pose of camera 2 in camera 1.
+    let t12 = k1.pose_cw * k2.pose_cw.inverse();
+    let r12 = *t12.rotation.to_rotation_matrix().matrix();
+    let t = t12.translation.vector;
+    let tx = Matrix3::new(0.0, -t.z, t.y, t.z, 0.0, -t.x, -t.y, t.x, 0.0);
+    let kinv = k_matrix(intr)
+        .try_inverse()
+        .unwrap_or_else(Matrix3::identity);
+    let f12 = kinv.transpose() * tx * r12 * kinv;
+    // Camera 1's centre in image 2.
+    let epipole = intr.project(&(k2.pose_cw * Point3::from(k1.center())).coords);
+    let free2: Vec<usize> = (0..k2.keypoints.len())
+        .filter(|&i| k2.points[i].is_none())
+        .collect();
+    let mut best: Vec<Option<(u32, usize)>> = vec![None; k2.keypoints.len()];
+    for i1 in 0..k1.keypoints.len() {
+        if k1.points[i1].is_some() {
+            continue;
+        }
+        let x1 = k1.keypoints[i1].un;
+        let l = Vector3::new(x1.x, x1.y, 1.0).transpose() * f12;
+        let (a, b, c) = (l[0], l[1], l[2]);
+        let norm2 = a * a + b * b;
+        if norm2 <= 0.0 {
+            continue;
+        }
+        let d1 = &k1.descriptors[i1];
+        let (mut b1, mut b2, mut bi) = (u32::MAX, u32::MAX, usize::MAX);
+        for &i2 in &free2 {
+            let h = hamming(d1, &k2.descriptors[i2]);
+            if h > TRIANGULATION_MAX_DISTANCE || h >= b2 {
+                continue;
+            }
+            let kp2 = &k2.keypoints[i2];
+            let sigma2 = geo.scales[kp2.octave as usize].powi(2);
+            if let Some(e) = epipole
+                && (kp2.un - e).norm_squared() < 100.0 * geo.scales[kp2.octave as usize]
+            {
+                continue;
+            }
+            let num = a * kp2.un.x + b * kp2.un.y + c;
+            if num * num / norm2 > CHI2_EPIPOLAR * sigma2 {
+                continue;
+            }
+            if h < b1 {
+                (b2, b1, bi) = (b1, h, i2);
+            } else {
+                b2 = h;
+            }
+        }
+        if bi == usize::MAX || (b2 != u32::MAX && b1 as f64 > TRIANGULATION_RATIO * b2 as f64) {
+            continue;
+        }
+        if best[bi].is_none_or(|(d, _)| b1 < d) {
+            best[bi] = Some((b1, i1));
+        }
+    }
+    let mut pairs: Vec<(usize, usize)> = best
+        .iter()
+        .enumerate()
+        .filter_map(|(i2, x)| x.map(|(_, i1)| (i1, i2)))
+        .collect();
+    pairs.sort_unstable();
+    const BINS: usize = 30;
+    let bin = |&(i1, i2): &(usize, usize)| {
+        let d = (k1.keypoints[i1].angle - k2.keypoints[i2].angle).rem_euclid(360.0);
+        ((d / 360.0 * BINS as f32) as usize).min(BINS - 1)
+    };
+    let mut hist = [0usize; BINS];
+    for x in &pairs {
+        hist[bin(x)] += 1;
+    }
+    let mut order: Vec<usize> = (0..BINS).collect();
+    order.sort_by(|a, b| hist[*b].cmp(&hist[*a]).then(a.cmp(b)));
+    let max = hist[order[0]];
+    let keep: Vec<usize> = order[..3]
+        .iter()
+        .copied()
+        .filter(|&b| hist[b] > 0 && hist[b] as f64 >= 0.1 * max as f64)
+        .collect();
+    pairs.retain(|x| keep.contains(&bin(x)));
+    pairs
 }

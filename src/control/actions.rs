@@ -95,13 +95,18 @@ impl StateMachine {
         Some(pose)
     }
 
-    /// A new map whose first keyframe is this frame (RGB-D: one frame with enough depth).
+    /// A new map from the initializer: RGB-D, one frame with enough depth whose keyframe is
+    /// the map's origin; monocular, a two-view reconstruction whose second keyframe is this
+    /// frame (the first, an earlier frame, is the origin).
     fn start_new_map(&mut self, m: &Measurement, timing: &mut Timing) -> Option<Pose> {
         let blank = self.atlas.blank_map();
         let (map, kf) = timing.time("initialize", || self.initializer.try_initialize(m, blank))?;
+        for k in map.keyframes.values() {
+            self.detector.insert(k.id as u64, &k.descriptors);
+        }
+        let pose = map.keyframes[&kf].pose_cw;
         let id = self.atlas.insert_map(map);
-        self.detector.insert(kf as u64, &m.descriptors);
-        self.start_tracking_in(id, kf, Isometry3::identity(), m);
+        self.start_tracking_in(id, kf, pose, m);
         tracing::info!("frame {}: new map {id}", m.frame);
         Some((Isometry3::identity(), id, kf))
     }
@@ -141,7 +146,7 @@ impl StateMachine {
             }
             self.tracker.lose();
         }
-        if new_map && !self.mono {
+        if new_map {
             let pose = self.start_new_map(m, timing)?;
             self.flags.able_to_track = true;
             return Some(pose);
