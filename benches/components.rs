@@ -107,16 +107,6 @@ fn bench_image_components(c: &mut Criterion) {
     // Tracking step: a map initialised on frame 0 (RGB-D), the tracker reset there, frame 1
     // tracked against it (the tracker is cloned per iteration so every step is the same).
     let cfg = &im.config;
-    let init = Initializer {
-        min_points: cfg.mapping.min_init_depth_points as usize,
-        max_depth: cfg.mapping.max_point_depth_m,
-        intr: im.intr,
-        scale_factor: cfg.orb.scale_factor,
-        n_levels: cfg.orb.n_levels,
-    };
-    let (map, kf) = init
-        .try_initialize(&ms[0], Map::new(0))
-        .expect("the first desk frame initialises a map");
     let geo = ImageGeometry::new(
         im.intr,
         im.width,
@@ -124,6 +114,15 @@ fn bench_image_components(c: &mut Criterion) {
         cfg.orb.scale_factor,
         cfg.orb.n_levels,
     );
+    let mut init = Initializer::new(
+        cfg.mapping.min_init_depth_points as usize,
+        cfg.mapping.max_point_depth_m,
+        geo.clone(),
+        false,
+    );
+    let (map, kf) = init
+        .try_initialize(&ms[0], Map::new(0))
+        .expect("the first desk frame initialises a map");
     let mut tracker = Tracker::new(&cfg.tracker, geo);
     tracker.reset(
         Isometry3::identity(),
