@@ -64,9 +64,9 @@ pub fn start(quiet: bool) -> Option<ProgressHook> {
 
 /// Removes the bar from the screen.
 pub fn finish() {
-    if let Ok(mut b) = BAR.lock() {
-        if let Some(bar) = b.take() {
-            bar.finish_and_clear();
-        }
+    if let Ok(mut b) = BAR.lock()
+        && let Some(bar) = b.take()
+    {
+        bar.finish_and_clear();
     }
 }

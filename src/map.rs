@@ -196,10 +196,10 @@ impl Map {
         let Some(k) = self.keyframes.get_mut(&kf) else {
             return false;
         };
-        if let Some(old) = k.points[kp].filter(|&o| o != point) {
-            if let Some(o) = self.points.get_mut(&old) {
-                o.observations.remove(&kf);
-            }
+        if let Some(old) = k.points[kp].filter(|&o| o != point)
+            && let Some(o) = self.points.get_mut(&old)
+        {
+            o.observations.remove(&kf);
         }
         k.points[kp] = Some(point);
         if let Some(p) = self.points.get_mut(&point) {
@@ -246,10 +246,10 @@ impl Map {
     pub fn remove_point(&mut self, id: PointId) {
         if let Some(p) = self.points.remove(&id) {
             for (kf, kp) in p.observations {
-                if let Some(k) = self.keyframes.get_mut(&kf) {
-                    if k.points[kp] == Some(id) {
-                        k.points[kp] = None;
-                    }
+                if let Some(k) = self.keyframes.get_mut(&kf)
+                    && k.points[kp] == Some(id)
+                {
+                    k.points[kp] = None;
                 }
             }
         }
@@ -271,10 +271,8 @@ impl Map {
             if let Some(k) = self.keyframes.get_mut(&kf) {
                 k.points[kp] = if already { None } else { Some(new) };
             }
-            if !already {
-                if let Some(n) = self.points.get_mut(&new) {
-                    n.observations.insert(kf, kp);
-                }
+            if !already && let Some(n) = self.points.get_mut(&new) {
+                n.observations.insert(kf, kp);
             }
         }
         if let Some(n) = self.points.get_mut(&new) {

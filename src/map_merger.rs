@@ -719,10 +719,10 @@ pub fn apply_ba<'a>(
         ..
     } = &done.job;
     for (k, c) in cams.iter().zip(&problem.keyframes) {
-        if !c.fixed {
-            if let Some(kf) = map.keyframes.get_mut(k) {
-                kf.pose_cw = c.pose_cw;
-            }
+        if !c.fixed
+            && let Some(kf) = map.keyframes.get_mut(k)
+        {
+            kf.pose_cw = c.pose_cw;
         }
     }
     for (p, bp) in pts.iter().zip(&problem.points) {
@@ -736,10 +736,10 @@ pub fn apply_ba<'a>(
         let Some(p) = map.points.get_mut(&pid) else {
             continue;
         };
-        if let Some(kp) = p.observations.remove(&k) {
-            if let Some(key) = map.keyframes.get_mut(&k) {
-                key.points[kp] = None;
-            }
+        if let Some(kp) = p.observations.remove(&k)
+            && let Some(key) = map.keyframes.get_mut(&k)
+        {
+            key.points[kp] = None;
         }
         if p.observations.is_empty() {
             map.points.remove(&pid);

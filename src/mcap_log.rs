@@ -124,7 +124,7 @@ pub fn encode(states: &[StateRow], stats: &[FrameStats], poses: &[PosedFrame]) -
         });
         msgs.push((seconds_to_ns(r.t), 3, k, v.to_string().into_bytes()));
     }
-    msgs.sort_by(|a, b| (a.0, a.1, a.2).cmp(&(b.0, b.1, b.2)));
+    msgs.sort_by_key(|a| (a.0, a.1, a.2));
 
     let err = |e: ::mcap::McapError| Error::invalid(format!("cannot encode run.mcap: {e}"));
     let mut buf = std::io::Cursor::new(Vec::new());

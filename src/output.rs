@@ -489,10 +489,10 @@ pub fn read_states(path: &Path) -> Result<Vec<StateCsvRow>> {
 pub fn read_state_maps(path: &Path) -> Result<Vec<(f64, u32)>> {
     let mut out: Vec<(f64, u32)> = Vec::new();
     for r in read_states(path)? {
-        if let Some(m) = r.map {
-            if out.last().is_none_or(|&(t, _)| t != r.t) {
-                out.push((r.t, m));
-            }
+        if let Some(m) = r.map
+            && out.last().is_none_or(|&(t, _)| t != r.t)
+        {
+            out.push((r.t, m));
         }
     }
     Ok(out)

@@ -632,7 +632,7 @@ fn ic_angle(img: &Mat, x: i32, y: i32, umax: &[i32]) -> Result<f32> {
     let half = umax.len() as i32 - 2;
     let step = img
         .mat_step()
-        .get(0)
+        .first()
         .copied()
         .unwrap_or(img.cols() as usize);
     let data = img.data_bytes().map_err(cv_err("pyramid level"))?;

@@ -1406,9 +1406,7 @@ pub fn results_table(s: &Summary) -> String {
         .unwrap_or("")
         .to_uppercase();
     line(
-        &format!("ATE RMSE {}", if align.is_empty() { "" } else { &align })
-            .trim_end()
-            .to_string(),
+        format!("ATE RMSE {}", if align.is_empty() { "" } else { &align }).trim_end(),
         match get("/ate/stats/rmse") {
             Some(r) => format!(
                 "{:.4} m ({} poses)",

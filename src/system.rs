@@ -217,12 +217,11 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
                     timing_ms: counts.map(|c| timing.since(&c)),
                 });
             }
-            if let Some(v) = viz.as_mut() {
-                if let Err(e) = timing.time("visualize", || v.log_frame(&frame, &m, &machine, &out))
-                {
-                    failure = Some(e);
-                    break;
-                }
+            if let Some(v) = viz.as_mut()
+                && let Err(e) = timing.time("visualize", || v.log_frame(&frame, &m, &machine, &out))
+            {
+                failure = Some(e);
+                break;
             }
             if let Some(from) = out.invalidated_from {
                 let before = relative.len();
@@ -278,7 +277,7 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
                 // the sequence is not processed.
                 break;
             }
-            if delivered % 100 == 0 {
+            if delivered.is_multiple_of(100) {
                 tracing::info!(
                     "frame {delivered}/{n} state {} keyframes {}",
                     out.state,

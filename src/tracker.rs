@@ -499,11 +499,11 @@ impl Tracker {
             .filter(|&b| hist[b] > 0 && hist[b] as f64 >= 0.1 * max as f64)
             .collect();
         for (i, b) in rotation_bin.iter().enumerate() {
-            if let Some(b) = b {
-                if !keep.contains(b) {
-                    matches[i] = None;
-                    n -= 1;
-                }
+            if let Some(b) = b
+                && !keep.contains(b)
+            {
+                matches[i] = None;
+                n -= 1;
             }
         }
         n

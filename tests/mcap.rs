@@ -150,7 +150,7 @@ fn tiny_bag(tmp: &Path) -> PathBuf {
 }
 
 fn err_of(r: homing::Result<homing::output::Summary>) -> String {
-    r.err().expect("an error").to_string()
+    r.expect_err("an error").to_string()
 }
 
 #[test]

@@ -669,10 +669,8 @@ impl StateMachine {
                         map.replace_point(p, *target);
                         fused += 1;
                     }
-                    None => {
-                        if map.observe(q, i, *target) {
-                            fused += 1;
-                        }
+                    None if map.observe(q, i, *target) => {
+                        fused += 1;
                     }
                     _ => {}
                 }
@@ -1008,14 +1006,15 @@ impl StateMachine {
                 format!("INCONSISTENT, offending pools {:?}", report.offending_pools)
             }
         );
-        if report.consistent && self.cfg.loop_closing.full_ba_after_closure {
-            if let Some(r) = self.merger.global_ba(m) {
-                tracing::debug!(
-                    "full BA after closure: cost {:.1} -> {:.1}",
-                    r.initial_cost,
-                    r.final_cost
-                );
-            }
+        if report.consistent
+            && self.cfg.loop_closing.full_ba_after_closure
+            && let Some(r) = self.merger.global_ba(m)
+        {
+            tracing::debug!(
+                "full BA after closure: cost {:.1} -> {:.1}",
+                r.initial_cost,
+                r.final_cost
+            );
         }
         report
     }

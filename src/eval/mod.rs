@@ -62,7 +62,7 @@ impl Stats {
         let mut s = e.to_vec();
         s.sort_by(|a, b| a.total_cmp(b));
         let m = s.len() / 2;
-        let median = if s.len() % 2 == 0 {
+        let median = if s.len().is_multiple_of(2) {
             0.5 * (s[m - 1] + s[m])
         } else {
             s[m]

@@ -128,10 +128,10 @@ pub fn per_map_ate(
     for p in est {
         // Stamps are written with 6 decimals in both files: match at that precision.
         let i = sorted.partition_point(|(t, _)| *t < p.t - 5e-7);
-        if let Some((t, m)) = sorted.get(i) {
-            if (t - p.t).abs() < 5e-7 {
-                by_map.entry(*m).or_default().push(p.clone());
-            }
+        if let Some((t, m)) = sorted.get(i)
+            && (t - p.t).abs() < 5e-7
+        {
+            by_map.entry(*m).or_default().push(*p);
         }
     }
     let mut out = Vec::new();

@@ -51,10 +51,11 @@ fn states_per_frame(rows: &[StateCsvRow], n_frames: usize) -> Vec<Vec<String>> {
             continue;
         }
         let v = &mut per[r.frame];
-        if let Some(f) = &r.from {
-            if f != "(start)" && v.last() != Some(f) {
-                v.push(f.clone());
-            }
+        if let Some(f) = &r.from
+            && f != "(start)"
+            && v.last() != Some(f)
+        {
+            v.push(f.clone());
         }
         if v.last() != Some(&r.state) {
             v.push(r.state.clone());

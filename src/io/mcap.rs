@@ -333,15 +333,15 @@ impl McapSequence {
                     ),
                 ));
             }
-            if *flag == "--depth-topic" {
-                if let Some(s) = ch.metadata.get(DEPTH_SCALE_KEY) {
-                    depth_scale = s.parse().ok().filter(|v: &f64| *v > 0.0).ok_or_else(|| {
+            if *flag == "--depth-topic"
+                && let Some(s) = ch.metadata.get(DEPTH_SCALE_KEY)
+            {
+                depth_scale = s.parse().ok().filter(|v: &f64| *v > 0.0).ok_or_else(|| {
                         Error::file(
                             path,
                             format!("{topic}: channel metadata {DEPTH_SCALE_KEY}='{s}' is not a positive number"),
                         )
                     })?;
-                }
             }
         }
         if summary.chunk_indexes.is_empty() {
@@ -401,13 +401,13 @@ impl McapSequence {
         };
         sort(&mut colour, &topics.image)?;
         sort(&mut depth, &topics.depth)?;
-        if let Some(ci) = &topics.camera_info {
-            if camera_info.is_none() {
-                return Err(Error::file(
-                    path,
-                    format!("--camera-info-topic {ci}: the topic has no message"),
-                ));
-            }
+        if let Some(ci) = &topics.camera_info
+            && camera_info.is_none()
+        {
+            return Err(Error::file(
+                path,
+                format!("--camera-info-topic {ci}: the topic has no message"),
+            ));
         }
         let mut unassociated = 0;
         let frames: Vec<McapFrame> = if mono {

@@ -55,19 +55,19 @@ fn parse_f64(path: &Path, line: usize, what: &str, s: &str) -> Result<f64> {
 /// Checks that time stamps strictly increase; duplicated or unsorted ones are an error because
 /// association and RPE silently go wrong on them.
 fn check_increasing(path: &Path, prev: Option<(f64, usize)>, t: f64, line: usize) -> Result<()> {
-    if let Some((tp, lp)) = prev {
-        if t <= tp {
-            let what = if t == tp {
-                "duplicated"
-            } else {
-                "not increasing"
-            };
-            return Err(Error::parse(
-                path,
-                line,
-                format!("time stamp {t:.6} is {what} (line {lp} has {tp:.6})"),
-            ));
-        }
+    if let Some((tp, lp)) = prev
+        && t <= tp
+    {
+        let what = if t == tp {
+            "duplicated"
+        } else {
+            "not increasing"
+        };
+        return Err(Error::parse(
+            path,
+            line,
+            format!("time stamp {t:.6} is {what} (line {lp} has {tp:.6})"),
+        ));
     }
     Ok(())
 }

@@ -230,7 +230,7 @@ fn query_and_insert_equals_query_then_insert() {
     let mut b = Hbst::new(small_params());
     for (i, d) in images.iter().enumerate() {
         let key = 100 + i as u64;
-        let accept = |k: u64| k % 3 != 0;
+        let accept = |k: u64| !k.is_multiple_of(3);
         let ra = a.query_and_insert_detailed(key, d, accept, true);
         let rb = b.query_detailed(d, accept, true);
         b.insert(key, d);
