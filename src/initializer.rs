@@ -16,7 +16,9 @@ use crate::aligner::backproject;
 use crate::map::{KfId, Map};
 use crate::map_merger::bundle_adjust;
 use crate::optim::{BaParams, Intrinsics};
-use crate::preprocess::{ImageGeometry, Measurement, hamming};
+use crate::preprocess::{
+    ImageGeometry, Measurement, dominant_rotation_bins, hamming, rotation_bin,
+};
 use crate::two_view::{TwoViewParams, initialize_two_view};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector2};
 
@@ -34,7 +36,6 @@ const MONO_MIN_KEYPOINTS: usize = 100;
 /// (tracking resumed in the meantime), and an old view would pair frames far apart in time.
 const MONO_MAX_REFERENCE_AGE_S: f64 = 2.0;
 /// Bins of the rotation-consistency histogram (ORB-SLAM's HISTO_LENGTH).
-const ROTATION_BINS: usize = 30;
 
 pub struct Initializer {
     pub min_points: usize,
@@ -287,22 +288,8 @@ fn match_to_reference(r: &Measurement, m: &Measurement) -> Matches {
     matches.sort_unstable();
     // Rotation consistency: keep the three dominant bins (those with at least a tenth of the
     // largest bin's votes).
-    let bin = |&(a, b): &(usize, usize)| {
-        let d = (r.keypoints[a].angle - m.keypoints[b].angle).rem_euclid(360.0);
-        ((d / 360.0 * ROTATION_BINS as f32) as usize).min(ROTATION_BINS - 1)
-    };
-    let mut hist = [0usize; ROTATION_BINS];
-    for x in &matches {
-        hist[bin(x)] += 1;
-    }
-    let mut order: Vec<usize> = (0..ROTATION_BINS).collect();
-    order.sort_by(|a, b| hist[*b].cmp(&hist[*a]).then(a.cmp(b)));
-    let max = hist[order[0]];
-    let keep: Vec<usize> = order[..3]
-        .iter()
-        .copied()
-        .filter(|&b| hist[b] > 0 && hist[b] as f64 >= 0.1 * max as f64)
-        .collect();
+    let bin = |&(a, b): &(usize, usize)| rotation_bin(r.keypoints[a].angle, m.keypoints[b].angle);
+    let keep = dominant_rotation_bins(matches.iter().map(bin));
     matches.retain(|x| keep.contains(&bin(x)));
     matches
 }

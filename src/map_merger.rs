@@ -9,7 +9,9 @@ use crate::map::{KfId, Map, PointId};
 use crate::optim::{
     self, BaCamera, BaObservation, BaParams, BaPoint, BaProblem, Observation, octave_information,
 };
-use crate::preprocess::{ImageGeometry, Measurement, hamming};
+use crate::preprocess::{
+    ImageGeometry, Measurement, dominant_rotation_bins, hamming, rotation_bin,
+};
 use crate::tracker::TrackResult;
 use crate::two_view::{k_matrix, projection_matrix, triangulate};
 use nalgebra::{Isometry3, Matrix3, Point3, Vector2, Vector3};
@@ -844,23 +846,9 @@ fn match_for_triangulation(
         .filter_map(|(i2, x)| x.map(|(_, i1)| (i1, i2)))
         .collect();
     pairs.sort_unstable();
-    const BINS: usize = 30;
-    let bin = |&(i1, i2): &(usize, usize)| {
-        let d = (k1.keypoints[i1].angle - k2.keypoints[i2].angle).rem_euclid(360.0);
-        ((d / 360.0 * BINS as f32) as usize).min(BINS - 1)
-    };
-    let mut hist = [0usize; BINS];
-    for x in &pairs {
-        hist[bin(x)] += 1;
-    }
-    let mut order: Vec<usize> = (0..BINS).collect();
-    order.sort_by(|a, b| hist[*b].cmp(&hist[*a]).then(a.cmp(b)));
-    let max = hist[order[0]];
-    let keep: Vec<usize> = order[..3]
-        .iter()
-        .copied()
-        .filter(|&b| hist[b] > 0 && hist[b] as f64 >= 0.1 * max as f64)
-        .collect();
+    let bin =
+        |&(i1, i2): &(usize, usize)| rotation_bin(k1.keypoints[i1].angle, k2.keypoints[i2].angle);
+    let keep = dominant_rotation_bins(pairs.iter().map(bin));
     pairs.retain(|x| keep.contains(&bin(x)));
     pairs
 }

@@ -29,6 +29,33 @@ pub fn hamming(a: &Descriptor, b: &Descriptor) -> u32 {
     d
 }
 
+/// Bins of the rotation-consistency histogram (ORB-SLAM: 30 bins of 12°).
+pub const ROTATION_BINS: usize = 30;
+
+/// The histogram bin of the change of keypoint orientation `a1 - a2` (degrees).
+pub fn rotation_bin(a1: f32, a2: f32) -> usize {
+    let d = (a1 - a2).rem_euclid(360.0);
+    ((d / 360.0 * ROTATION_BINS as f32) as usize).min(ROTATION_BINS - 1)
+}
+
+/// Rotation consistency (ORB-SLAM): between two views every true match turns by about the same
+/// angle, so only matches in the three dominant bins (each with at least a tenth of the
+/// largest bin's votes) are kept. Returns those bins; ties go to the lower bin.
+pub fn dominant_rotation_bins(bins: impl IntoIterator<Item = usize>) -> Vec<usize> {
+    let mut hist = [0usize; ROTATION_BINS];
+    for b in bins {
+        hist[b] += 1;
+    }
+    let mut order: Vec<usize> = (0..ROTATION_BINS).collect();
+    order.sort_by(|a, b| hist[*b].cmp(&hist[*a]).then(a.cmp(b)));
+    let max = hist[order[0]];
+    order[..3]
+        .iter()
+        .copied()
+        .filter(|&b| hist[b] > 0 && hist[b] as f64 >= 0.1 * max as f64)
+        .collect()
+}
+
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Keypoint {
     /// Position in the raw (distorted) image, level-0 pixels.

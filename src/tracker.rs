@@ -72,9 +72,6 @@ struct Candidate {
     ref_angle: Option<f32>,
 }
 
-/// Bins of the rotation-consistency histogram (ORB-SLAM's HISTO_LENGTH).
-const ROTATION_BINS: usize = 30;
-
 impl Tracker {
     pub fn new(cfg: &TrackerConfig, geo: ImageGeometry) -> Self {
         Self {
@@ -478,26 +475,15 @@ impl Tracker {
                 }
                 best[bi] = b1;
                 matches[bi] = Some(c.id);
-                rotation_bin[bi] = c.ref_angle.map(|a| {
-                    let d = (a - m.keypoints[bi].angle).rem_euclid(360.0);
-                    ((d / 360.0 * ROTATION_BINS as f32) as usize).min(ROTATION_BINS - 1)
-                });
+                rotation_bin[bi] = c
+                    .ref_angle
+                    .map(|a| crate::preprocess::rotation_bin(a, m.keypoints[bi].angle));
             }
         }
         // Rotation consistency (ORB-SLAM): between two frames every true match turns by about
         // the same angle; matches outside the three dominant bins of the histogram are dropped.
-        let mut hist = [0usize; ROTATION_BINS];
-        for b in rotation_bin.iter().flatten() {
-            hist[*b] += 1;
-        }
-        let mut order: Vec<usize> = (0..ROTATION_BINS).collect();
-        order.sort_by(|a, b| hist[*b].cmp(&hist[*a]).then(a.cmp(b)));
-        let max = hist[order[0]];
-        let keep: Vec<usize> = order[..3]
-            .iter()
-            .copied()
-            .filter(|&b| hist[b] > 0 && hist[b] as f64 >= 0.1 * max as f64)
-            .collect();
+        let keep =
+            crate::preprocess::dominant_rotation_bins(rotation_bin.iter().flatten().copied());
         for (i, b) in rotation_bin.iter().enumerate() {
             if let Some(b) = b
                 && !keep.contains(b)
