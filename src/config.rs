@@ -292,10 +292,16 @@ pub struct ControllerConfig {
     /// predicts points to judge.
     pub min_expected_cells: u32,
     /// Localized is left for Core when, for `left_after_frames` frames running, less than this
-    /// share of the image cells holding keypoints are cells where the map predicts points.
+    /// share of the image cells holding keypoints are cells where the map predicts points ...
     pub min_known_coverage: f64,
-    /// ... or, at once, when the tracker keeps fewer inliers than this (the map no longer
-    /// holds it well: mapping must resume before tracking fails).
+    /// ... and no keyframe of the map has a similar viewpoint: a centre within this distance
+    /// and an optical axis within `known_view_angle_deg`. The viewpoint test keeps the number
+    /// of keyframes bounded by the area explored: where a keyframe already looks, a thinly
+    /// mapped view is a sparse map, not an unknown place.
+    pub known_view_distance_m: f64,
+    pub known_view_angle_deg: f64,
+    /// ... or, at once and off the keyframes' viewpoints, when the tracker keeps fewer inliers
+    /// than this (the map no longer holds it well: mapping must resume before tracking fails).
     pub min_localized_inliers: u32,
     pub left_after_frames: u32,
     /// Tracking continues in the current map only across breaks in the measurements of at
@@ -315,6 +321,8 @@ impl Default for ControllerConfig {
             corrupted_after_frames: 5,
             min_expected_cells: 30,
             min_known_coverage: 0.5,
+            known_view_distance_m: 0.5,
+            known_view_angle_deg: 30.0,
             min_localized_inliers: 100,
             left_after_frames: 3,
             reacquire_gap_s: 0.5,
@@ -631,6 +639,18 @@ impl Config {
             k.min_known_coverage,
             0.0,
             1.0,
+        );
+        c.range(
+            "controller.known_view_distance_m",
+            k.known_view_distance_m,
+            0.0,
+            1000.0,
+        );
+        c.range(
+            "controller.known_view_angle_deg",
+            k.known_view_angle_deg,
+            0.0,
+            180.0,
         );
         c.range(
             "controller.max_contradiction",

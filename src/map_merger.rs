@@ -458,9 +458,19 @@ impl MapMerger {
     /// (the one with fewer observations is replaced). Returns the number of fusions/additions.
     fn fuse(&self, map: &mut Map, kf: KfId) -> usize {
         let neighbours = map.keyframes[&kf].best_covisible(10);
+        self.fuse_into(map, kf, &neighbours)
+    }
+
+    /// Projects the points of keyframes `sources` into keyframe `kf` and fuses duplicates
+    /// (see `fuse`). Loop closing uses it across the loop (ORB-SLAM's `SearchAndFuse`): the
+    /// two sides then share points, so the covisibility graph, the tracker's local map and
+    /// local BA see them as one place instead of two overlapping branches.
+    pub fn fuse_into(&self, map: &mut Map, kf: KfId, sources: &[KfId]) -> usize {
         let mut cands: BTreeSet<PointId> = BTreeSet::new();
-        for n in &neighbours {
-            cands.extend(map.keyframes[n].points.iter().flatten().copied());
+        for n in sources {
+            if let Some(k) = map.keyframes.get(n) {
+                cands.extend(k.points.iter().flatten().copied());
+            }
         }
         let mut fused = 0;
         for pid in cands {

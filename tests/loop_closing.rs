@@ -89,3 +89,66 @@ fn aliasing_leaves_no_wrong_closure_standing() {
     // ... and every such candidate is rejected, never pooled, or rolled back.
     assert_eq!(c["accepted_wrong"].as_u64().unwrap(), 0, "{c}");
 }
+
+/// Bounded map (#6): on `revisit` (five laps of the same circle) the camera is back in mapped
+/// space after the first lap, so Localized holds and keyframes stop growing with the
+/// trajectory: at the end at most 1.2 × the keyframes the map had when the first lap closed.
+#[test]
+fn revisiting_keeps_the_map_bounded() {
+    let tmp = tempfile::tempdir().unwrap();
+    let seq = tmp.path().join("revisit");
+    common::synth_small("revisit", &seq, None);
+    let out = tmp.path().join("out");
+    let s = run(&RunOptions {
+        sequence: seq,
+        out: out.clone(),
+        eval: true,
+        ..Default::default()
+    })
+    .unwrap();
+    let states = std::fs::read_to_string(out.join("states.csv")).unwrap();
+    // Per-frame rows: frame,timestamp,state,... (transition rows name a `from` state).
+    let rows: Vec<Vec<&str>> = states
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').collect())
+        .collect();
+    let first_localized = rows
+        .iter()
+        .find(|r| r[2] == "Localized")
+        .expect("never Localized on revisit");
+    let t_closed: f64 = first_localized[1].parse().unwrap();
+    let kf_times: Vec<f64> = std::fs::read_to_string(out.join("keyframes.txt"))
+        .unwrap()
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .map(|l| l.split_whitespace().next().unwrap().parse().unwrap())
+        .collect();
+    let after_first_lap = kf_times.iter().filter(|&&t| t <= t_closed).count();
+    assert!(after_first_lap >= 5, "{after_first_lap} keyframes in lap 1");
+    assert_eq!(kf_times.len(), s.keyframes);
+    assert!(
+        s.keyframes as f64 <= 1.2 * after_first_lap as f64,
+        "{} keyframes at the end, {after_first_lap} when lap 1 closed",
+        s.keyframes
+    );
+    // Most of laps 2-5 is spent Localized, and the map stays one consistent map.
+    let frames: Vec<&Vec<&str>> = rows
+        .iter()
+        .filter(|r| r.len() > 3 && r[3].is_empty())
+        .collect();
+    let later: Vec<_> = frames
+        .iter()
+        .filter(|r| r[1].parse::<f64>().unwrap() > t_closed)
+        .collect();
+    let localized = later.iter().filter(|r| r[2] == "Localized").count();
+    assert!(
+        localized as f64 >= 0.8 * later.len() as f64,
+        "Localized on {localized} of {} frames after lap 1",
+        later.len()
+    );
+    assert_eq!(s.maps, 1);
+    let ev = s.evaluation.as_ref().unwrap();
+    assert_eq!(ev["closures"]["accepted_wrong"].as_u64().unwrap(), 0);
+    assert!(ate(&s) < 0.06, "ATE {} m", ate(&s));
+}

@@ -599,29 +599,31 @@ impl StateMachine {
             .keyframes
             .get(&last.matched)
             .map(|k| k.pose_cw);
-        // A frame that recognised an older part of its own map keeps its reference keyframe:
-        // the tracker's local map stays where the camera is, not around the old keyframe.
+        // A frame that recognised an older part of its own map keeps its pose relative to its
+        // reference keyframe (the optimisation moved both together), but tracks on from the
+        // matched keyframe (ORB-SLAM after a relocalization): the local map is then the old
+        // keyframes the camera is back among, so new keyframes, if any, observe the old points
+        // instead of duplicating them.
         let own_ref = last
             .reference_kf
             .filter(|_| into == from && last.query_kf.is_none());
         let own_ref_before = own_ref
             .and_then(|r| self.atlas.maps[&into].keyframes.get(&r))
             .map(|k| k.pose_cw);
-        let report = timing.time("global_opt", || self.global_optimization(into));
+        let report = timing.time("global_opt", || self.global_optimization(into, Some(&acc)));
         self.flags.consistent_map = report.consistent;
         self.suspects = report.offending_pools;
-        // Loop fusion: the query keyframes' points that duplicate matched ones are replaced,
-        // so that the two sides of the loop share points from now on.
-        self.fuse_closure(into, &acc);
         // The tracker continues at the newest member's pose (a loop's query keyframe as
         // optimised; a relocalized frame relative to its matched keyframe, which the
         // optimisation may have moved).
         let map = &self.atlas.maps[&into];
         let own = match (own_ref, own_ref_before) {
-            (Some(r), Some(before)) => map
-                .keyframes
-                .get(&r)
-                .map(|after| (last.query_pose * before.inverse() * after.pose_cw, r)),
+            (Some(r), Some(before)) => map.keyframes.get(&r).map(|after| {
+                (
+                    last.query_pose * before.inverse() * after.pose_cw,
+                    last.matched,
+                )
+            }),
             _ => None,
         };
         let (pose, ref_kf) = match (own, last.query_kf.and_then(|k| map.keyframes.get(&k))) {
@@ -647,7 +649,8 @@ impl StateMachine {
         self.cond.left_known_area = false;
     }
 
-    /// Replaces a query keyframe's points by the matched map's points it was matched to.
+    /// Replaces a query keyframe's points by the matched map's points it was matched to, then
+    /// fuses the two neighbourhoods of the closure.
     fn fuse_closure(&mut self, map_id: MapId, acc: &Accepted) {
         let Some(map) = self.atlas.maps.get_mut(&map_id) else {
             return;
@@ -679,7 +682,45 @@ impl StateMachine {
                 map.update_covisibility(q);
             }
         }
-        tracing::debug!("loop fusion: {fused} points");
+        // Then the neighbourhoods: the points around the matched keyframes are projected into
+        // the keyframes around the camera (its query or reference keyframe and their covisible
+        // neighbours) and duplicates fused, as ORB-SLAM's loop correction does.
+        let around = |map: &crate::map::Map, seeds: &mut dyn Iterator<Item = KfId>| {
+            let mut set = BTreeSet::new();
+            for k in seeds {
+                if let Some(kf) = map.keyframes.get(&k) {
+                    set.insert(k);
+                    set.extend(kf.best_covisible(10));
+                }
+            }
+            set
+        };
+        let matched = around(map, &mut acc.members.iter().map(|v| v.matched));
+        let current: BTreeSet<KfId> = around(
+            map,
+            &mut acc
+                .members
+                .iter()
+                .filter_map(|v| v.query_kf.or(v.reference_kf)),
+        )
+        .difference(&matched)
+        .copied()
+        .collect();
+        let sources: Vec<KfId> = matched.iter().copied().collect();
+        let mut fused_around = 0;
+        for &kf in &current {
+            fused_around += self.merger.fuse_into(map, kf, &sources);
+        }
+        for kf in current.iter().chain(matched.iter()) {
+            if map.keyframes.contains_key(kf) {
+                map.update_covisibility(*kf);
+            }
+        }
+        tracing::debug!(
+            "loop fusion: {fused} points of the query keyframes, {fused_around} between {} keyframes around the camera and {} around the match",
+            current.len(),
+            matched.len()
+        );
     }
 
     /// Localized: track in known space without new keyframes; check the map's expectation.
@@ -689,11 +730,14 @@ impl StateMachine {
         let map = &self.atlas.maps[&cur];
         // Expectation: where the map predicts structure, the camera must see it.
         let e = self.expectation(map, m, &track);
+        let known_view = known_viewpoint(map, &track.pose_cw, &self.cfg.controller);
         let pose = self.tracked(cur, &track, m);
         let ratio = e.ratio();
         tracing::debug!(
-            "frame {}: expectation {} of {} cells ({:.2}), depth {} confirmed {} contradicted ({:.2}), coverage {} of {} ({:.2})",
+            "frame {}: {} inliers ({:?}), expectation {} of {} cells ({:.2}), depth {} confirmed {} contradicted ({:.2}), coverage {} of {} ({:.2})",
             m.frame,
+            track.n_inliers,
+            track.method,
             e.confirmed_cells,
             e.expected_cells,
             ratio,
@@ -707,7 +751,8 @@ impl StateMachine {
         let c = &self.cfg.controller;
         // With depth: the camera contradicts where the map says surfaces are. Without (mono,
         // or too few readings): the predicted structure is not re-observed.
-        let failed = if e.depth_judged() >= c.min_expected_cells as usize {
+        let by_depth = e.depth_judged() >= c.min_expected_cells as usize;
+        let failed = if by_depth {
             e.contradiction() > c.max_contradiction
         } else {
             e.expected_cells >= c.min_expected_cells as usize && ratio < c.min_expectation_ratio
@@ -730,14 +775,19 @@ impl StateMachine {
                 e.expected_cells
             );
         }
-        // Left the known area: most of what the camera sees is not in the map, or the map no
-        // longer holds the tracker well, for a few frames running.
-        if e.coverage() < c.min_known_coverage {
+        // Left the known area: most of what the camera sees is not in the map and no keyframe
+        // looks from here, for a few frames running; or the map no longer holds the tracker.
+        if e.coverage() < c.min_known_coverage && !known_view {
             self.unknown_view_frames += 1;
         } else {
             self.unknown_view_frames = 0;
         }
-        let weak = track.n_inliers < c.min_localized_inliers as usize;
+        // Weak tracking off the keyframes' viewpoints: mapping must resume before tracking
+        // fails. Where a keyframe looks from, a new keyframe would duplicate it, so with depth
+        // Localized holds as long as the tracker does (the depth check guards the map).
+        // Without depth the check is appearance only, which cannot tell a blurred frame from a
+        // wrong map: weak tracking leaves before that check could condemn a correct map.
+        let weak = track.n_inliers < c.min_localized_inliers as usize && !(known_view && by_depth);
         self.cond.left_known_area =
             self.flags.consistent_map && (weak || self.unknown_view_frames >= c.left_after_frames);
         Some(pose)
@@ -850,7 +900,7 @@ impl StateMachine {
                     .filter(|m| self.atlas.maps.contains_key(m))
                     .collect();
                 maps.into_iter()
-                    .all(|m| self.global_optimization(m).consistent)
+                    .all(|m| self.global_optimization(m, None).consistent)
             } else {
                 true
             };
@@ -980,7 +1030,15 @@ impl StateMachine {
 impl StateMachine {
     /// The global optimizer on map `map` with its standing closure edges; a full BA follows
     /// when the map is consistent (and the config asks for it).
-    pub(super) fn global_optimization(&mut self, map: MapId) -> GlobalReport {
+    /// Pose-graph optimisation of `map` over its closure edges; when consistent, the closure
+    /// just accepted (if any) is fused (see `fuse_closure`) and a full BA follows. Fusing
+    /// between the two is what keeps the loop closed in the BA: without shared points the BA
+    /// has nothing holding the two sides together and relaxes them apart again.
+    pub(super) fn global_optimization(
+        &mut self,
+        map: MapId,
+        closure: Option<&Accepted>,
+    ) -> GlobalReport {
         let closures = self.atlas.closure_edges(map);
         let Some(m) = self.atlas.maps.get_mut(&map) else {
             return GlobalReport {
@@ -1007,7 +1065,13 @@ impl StateMachine {
             }
         );
         if report.consistent
+            && let Some(acc) = closure
+        {
+            self.fuse_closure(map, acc);
+        }
+        if report.consistent
             && self.cfg.loop_closing.full_ba_after_closure
+            && let Some(m) = self.atlas.maps.get_mut(&map)
             && let Some(r) = self.merger.global_ba(m)
         {
             tracing::debug!(
@@ -1018,4 +1082,20 @@ impl StateMachine {
         }
         report
     }
+}
+
+/// Whether a keyframe of `map` looks from about where the camera `pose_cw` is (see
+/// `ControllerConfig::known_view_distance_m`).
+fn known_viewpoint(
+    map: &crate::map::Map,
+    pose_cw: &nalgebra::Isometry3<f64>,
+    c: &crate::config::ControllerConfig,
+) -> bool {
+    let axis = |p: &nalgebra::Isometry3<f64>| p.rotation.inverse() * nalgebra::Vector3::z();
+    let (center, z) = (pose_cw.inverse().translation.vector, axis(pose_cw));
+    let min_cos = c.known_view_angle_deg.to_radians().cos();
+    map.keyframes.values().any(|k| {
+        (k.center() - center).norm() <= c.known_view_distance_m
+            && axis(&k.pose_cw).dot(&z) >= min_cos
+    })
 }
