@@ -212,6 +212,12 @@ impl MapMerger {
         times
     }
 
+    /// A loop in the current map was closed at frame `frame`: no keyframe right away (the
+    /// tracker restarts from the matched keyframe), but the recent points stay under culling.
+    pub fn closed(&mut self, frame: usize) {
+        self.last_kf_frame = Some(frame);
+    }
+
     /// A new map started at keyframe `kf` of frame `frame`.
     pub fn started(&mut self, frame: usize) {
         self.last_kf_frame = Some(frame);

@@ -641,7 +641,12 @@ impl StateMachine {
         self.atlas.activate(into);
         let matches = last.matches.clone();
         self.tracker.reset(pose, m.t, &matches, ref_kf);
-        self.merger.started(m.frame);
+        if into == from {
+            // The same map goes on: its recent points still await culling.
+            self.merger.closed(m.frame);
+        } else {
+            self.merger.started(m.frame);
+        }
         self.reloc_pool.clear();
         self.loop_pool.clear();
         self.expectation_failures = 0;
