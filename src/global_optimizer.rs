@@ -283,6 +283,54 @@ impl Expectation {
     }
 }
 
+/// Depth check of a merge before it is made: the points of map `into`, seen from each
+/// keyframe of map `from` placed by `alignment` (from's world → into's world), against that
+/// keyframe's depth readings. Per keyframe of `from`: (points judged, points contradicted —
+/// the keyframe saw clearly through them). Perceptual aliasing (a copy of a room) passes every
+/// test local to the matched place; the rest of the two maps seldom agrees.
+pub fn merge_depth_check(
+    geo: &crate::preprocess::ImageGeometry,
+    into: &Map,
+    from: &Map,
+    alignment: &Isometry3<f64>,
+) -> Vec<(KfId, usize, usize)> {
+    let to_from = alignment.inverse();
+    let mut out = Vec::new();
+    for kf in from.keyframes.values() {
+        let pose = kf.pose_cw * to_from;
+        let (mut judged, mut contradicted) = (0, 0);
+        for p in into.points.values() {
+            let pc = Map::in_camera(&pose, &p.position);
+            if pc.z <= 0.1 {
+                continue;
+            }
+            let Some(uv) = geo.project_in_image(&pc) else {
+                continue;
+            };
+            let near = kf
+                .grid
+                .in_area(&kf.keypoints, uv.x, uv.y, DEPTH_SEARCH_PX, 0, u8::MAX);
+            let depths: Vec<f64> = near
+                .iter()
+                .map(|&i| kf.depth[i] as f64)
+                .filter(|d| *d > 0.0)
+                .collect();
+            if depths.is_empty() {
+                continue;
+            }
+            judged += 1;
+            let tol = depth_tolerance(pc.z);
+            if !depths.iter().any(|d| (d - pc.z).abs() <= tol)
+                && depths.iter().all(|d| *d > pc.z + tol)
+            {
+                contradicted += 1;
+            }
+        }
+        out.push((kf.id, judged, contradicted));
+    }
+    out
+}
+
 /// Depth tolerance of the expectation check at depth `z` (m): sensor noise plus the spread
 /// of keypoints around a projected point near depth edges.
 fn depth_tolerance(z: f64) -> f64 {

@@ -152,3 +152,34 @@ fn revisiting_keeps_the_map_bounded() {
     assert_eq!(ev["closures"]["accepted_wrong"].as_u64().unwrap(), 0);
     assert!(ate(&s) < 0.06, "ATE {} m", ate(&s));
 }
+
+/// Aliasing after a kidnapping: a 1 s drop as the camera enters room B leaves it in a new map
+/// with no odometry to room A, so the pose graph can never catch a wrong merge. Room B looks
+/// like room A, and the relocalization into A is proposed and pooled; the merge depth check
+/// refuses it (map A's points, seen from the new map's keyframes, lie where those keyframes
+/// saw through them).
+#[test]
+fn aliasing_after_a_kidnapping_is_not_merged() {
+    let tmp = tempfile::tempdir().unwrap();
+    let seq = tmp.path().join("aliasing");
+    common::synth_small("aliasing", &seq, None);
+    let out = tmp.path().join("run");
+    let s = run(&RunOptions {
+        sequence: seq,
+        out: out.clone(),
+        eval: true,
+        perturb: homing::io::perturb::PerturbationSpec {
+            drops: vec!["18.799s:19.799s".parse().unwrap()],
+            ..Default::default()
+        },
+        ..Default::default()
+    })
+    .unwrap();
+    let c = &s.evaluation.as_ref().unwrap()["closures"];
+    assert_eq!(c["accepted_wrong"].as_u64().unwrap(), 0, "{c}");
+    let closures = std::fs::read_to_string(out.join("closures.csv")).unwrap();
+    assert!(
+        closures.contains("rejected:map-contradiction"),
+        "the look-alike merge was not proposed and refused: {closures}"
+    );
+}

@@ -457,6 +457,35 @@ impl StateMachine {
                     Acceptance::Pool => pool.offer(*v, window, pool_size, &agreement),
                 };
                 let Some(acc) = accepted else { return false };
+                if acc.query_map != acc.match_map && !self.mono {
+                    let (Some(into), Some(from)) = (
+                        self.atlas.maps.get(&acc.match_map),
+                        self.atlas.maps.get(&acc.query_map),
+                    ) else {
+                        return false;
+                    };
+                    let per_kf =
+                        global_optimizer::merge_depth_check(&self.geo, into, from, &acc.alignment);
+                    tracing::debug!(
+                        "frame {}: merge depth check map {} -> {} (keyframe, judged, seen through): {:?}",
+                        m.frame,
+                        acc.query_map,
+                        acc.match_map,
+                        per_kf
+                    );
+                    let c = &self.cfg.controller;
+                    let worst = per_kf
+                        .iter()
+                        .filter(|(_, judged, _)| *judged >= c.min_expected_cells as usize)
+                        .map(|&(kf, judged, through)| (through as f64 / judged as f64, kf))
+                        .max_by(|a, b| a.0.total_cmp(&b.0).then(b.1.cmp(&a.1)));
+                    if let Some((share, kf)) = worst
+                        && share > c.max_contradiction
+                    {
+                        self.refuse_merge(acc, kind, m, kf, share);
+                        return false;
+                    }
+                }
                 tracing::info!(
                     "frame {}: {kind} pool accepted: map {} -> map {} from {} candidates",
                     m.frame,
@@ -469,6 +498,37 @@ impl StateMachine {
                 true
             }
         }
+    }
+
+    /// A pool whose merge the depth check refused (see `global_optimizer::merge_depth_check`):
+    /// its alignment is refused from now on, its candidates are logged as rejected and the
+    /// keyframes they matched are look-alikes.
+    fn refuse_merge(&mut self, acc: Accepted, kind: &str, m: &Measurement, kf: KfId, share: f64) {
+        tracing::info!(
+            "frame {}: {kind} pool refused: merging map {} into map {} would put {:.0} % of map {}'s points where keyframe {kf} saw through them (a look-alike place)",
+            m.frame,
+            acc.query_map,
+            acc.match_map,
+            100.0 * share,
+            acc.match_map
+        );
+        self.reloc_pool
+            .refuse(acc.query_map, acc.match_map, acc.alignment);
+        self.loop_pool
+            .refuse(acc.query_map, acc.match_map, acc.alignment);
+        self.reloc_pool.clear();
+        self.loop_pool.clear();
+        for row in self.closures.iter_mut().rev() {
+            if row.verdict == "pending"
+                && acc
+                    .members
+                    .iter()
+                    .any(|v| v.frame == row.frame && v.matched == row.matched_kf)
+            {
+                row.verdict = "rejected:map-contradiction".into();
+            }
+        }
+        self.mark_lookalikes(acc.members.iter().map(|v| v.matched).collect());
     }
 
     fn log_closure(
@@ -806,6 +866,13 @@ impl StateMachine {
             .iter()
             .map(|e| e.matched)
             .collect();
+        tracing::info!("pool {pool} was wrong");
+        self.mark_lookalikes(matched);
+    }
+
+    /// Keyframes `matched` anchored a wrong closure: they and their best covisible neighbours
+    /// are look-alikes of the place the camera was really in, and anchor no more closures.
+    fn mark_lookalikes(&mut self, matched: BTreeSet<KfId>) {
         let mut marked = matched.clone();
         for kf in &matched {
             if let Some(k) = self
@@ -816,9 +883,7 @@ impl StateMachine {
                 marked.extend(k.best_covisible(5));
             }
         }
-        tracing::info!(
-            "pool {pool}: keyframes {marked:?} are look-alikes; they anchor no more closures"
-        );
+        tracing::info!("keyframes {marked:?} are look-alikes; they anchor no more closures");
         self.aliased.extend(marked);
     }
 
