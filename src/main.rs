@@ -152,13 +152,17 @@ enum BenchCmd {
     /// kidnapping at 1-3 places of 1-5 s, false frames at 1 % and 5 %, a dark stretch, depth
     /// suppressed) and every controller, each run a child `homing run` whose command is
     /// recorded. Writes OUT/robustness.csv, OUT/robustness.md (tables and verdicts on the
-    /// issue's targets) and OUT/runs/SEQUENCE/PERTURBATION/CONTROLLER/.
+    /// issue's targets), OUT/robustness.png (coverage after kidnapping, per controller) and
+    /// OUT/runs/SEQUENCE/PERTURBATION/CONTROLLER/.
     ///
     /// Example: homing bench robustness --sequence data/fr1_xyz --out out/robustness
     Robustness {
         /// TUM RGB-D folders (repeatable).
-        #[arg(long, required = true, num_args = 1..)]
+        #[arg(long, required_unless_present = "plot_only", num_args = 1..)]
         sequence: Vec<PathBuf>,
+        /// Only redraw OUT/robustness.png from OUT/robustness.csv (no runs).
+        #[arg(long)]
+        plot_only: bool,
         /// Run every row monocular (depth suppressed); no separate depth-suppressed row.
         #[arg(long)]
         mono: bool,
@@ -349,7 +353,26 @@ fn main() {
             config,
         }) => cmd_case_study(out, data, small, threaded, controller, config),
         Cmd::Bench(BenchCmd::Robustness {
+            plot_only: true,
+            out,
+            ..
+        }) => {
+            use homing::bench::robustness_plot::{plot_coverage, read_csv};
+            let png = out.join("robustness.png");
+            read_csv(&out.join("robustness.csv"))
+                .and_then(|rows| plot_coverage(&png, &rows))
+                .map(|drawn| {
+                    if drawn {
+                        println!("written: {}", png.display());
+                    } else {
+                        println!("no kidnapping rows: nothing to plot");
+                    }
+                })
+                .map_err(Into::into)
+        }
+        Cmd::Bench(BenchCmd::Robustness {
             sequence,
+            plot_only: false,
             mono,
             controller,
             jobs,
@@ -373,7 +396,7 @@ fn main() {
                 .map(|(_, md)| {
                     print!("\n{md}");
                     println!(
-                        "\nwritten: {0}/robustness.csv, {0}/robustness.md, {0}/robustness.json",
+                        "\nwritten: {0}/robustness.csv, {0}/robustness.md, {0}/robustness.json, {0}/robustness.png",
                         out.display()
                     );
                 })

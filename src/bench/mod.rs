@@ -6,6 +6,7 @@
 
 pub mod case_study;
 pub mod robustness;
+pub mod robustness_plot;
 
 use crate::error::Result;
 use crate::output::Summary;

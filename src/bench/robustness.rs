@@ -469,7 +469,19 @@ fn write_outputs(out: &Path, rows: &[Row], md: &str) -> Result<()> {
     crate::io::atomic_write(&out.join("robustness.csv"), csv.as_bytes())?;
     crate::io::atomic_write(&out.join("robustness.md"), md.as_bytes())?;
     let json = serde_json::to_vec_pretty(rows).map_err(|e| Error::invalid(e.to_string()))?;
-    crate::io::atomic_write(&out.join("robustness.json"), &json)
+    crate::io::atomic_write(&out.join("robustness.json"), &json)?;
+    let cov: Vec<super::robustness_plot::CoverageRow> = rows
+        .iter()
+        .map(|r| {
+            (
+                r.sequence.clone(),
+                r.perturbation.clone(),
+                r.controller.clone(),
+                r.coverage,
+            )
+        })
+        .collect();
+    super::robustness_plot::plot_coverage(&out.join("robustness.png"), &cov).map(|_| ())
 }
 
 /// Runs the jobs `jobs` at a time; rows come back in job order whatever order they finish in.
