@@ -3,7 +3,8 @@
 //!
 //! Two stages, because one wrong closure can ruin a map:
 //! 1. **Geometry**, per candidate: the detector's descriptor matches between the query and a
-//!    keyframe become 3-D correspondences (query keypoints with depth ↔ the keyframe's map
+//!    keyframe, plus a wider descriptor search among the keyframe's map points (ORB-SLAM's
+//!    SearchByBoW), become 3-D correspondences (query keypoints with depth ↔ the keyframe's map
 //!    points) for a 3-D–3-D RANSAC (Umeyama), or 2-D–3-D for OpenCV's PnP RANSAC when the query
 //!    has too little depth; the pose found is then refined against the keyframe's whole local
 //!    map (projection search + robust pose-only optimisation). Enough inliers, and a large
@@ -22,7 +23,9 @@ use crate::map::{KfId, Map, PointId};
 use crate::optim::{
     Observation, PoseObservation, PoseParams, octave_information, refine_pose, se3,
 };
-use crate::preprocess::{ImageGeometry, Measurement, hamming};
+use crate::preprocess::{
+    ImageGeometry, Measurement, dominant_rotation_bins, hamming, rotation_bin,
+};
 use nalgebra::{Isometry3, Matrix6, Point3, Vector2, Vector3};
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 
@@ -122,16 +125,25 @@ pub fn validate(
     let Some(kf) = map.keyframes.get(&matched) else {
         return reject(Rejection::TooFewMatches, 0, None);
     };
-    // Correspondences: query keypoint ↔ the keyframe keypoint's map point.
+    // Correspondences: query keypoint ↔ the keyframe keypoint's map point, from the
+    // detector's votes and from a wider descriptor search among the keyframe's map points.
     let mut pairs: Vec<(usize, PointId)> = Vec::new();
     let mut seen = BTreeSet::new();
+    let mut used = vec![false; q.m.len()];
     for &(qi, ri) in &c.matches {
         let (qi, ri) = (qi as usize, ri as usize);
         let Some(Some(p)) = kf.points.get(ri) else {
             continue;
         };
-        if qi < q.m.len() && map.points.contains_key(p) && seen.insert(*p) {
+        if qi < q.m.len() && map.points.contains_key(p) && !used[qi] && seen.insert(*p) {
+            used[qi] = true;
             pairs.push((qi, *p));
+        }
+    }
+    for (qi, p) in search_keyframe_points(q.m, kf, map) {
+        if !used[qi] && seen.insert(p) {
+            used[qi] = true;
+            pairs.push((qi, p));
         }
     }
     if pairs.len() < cfg.min_matches as usize {
@@ -191,6 +203,62 @@ pub fn validate(
         n_inliers: n,
         information,
     }))
+}
+
+/// Largest Hamming distance of a descriptor-search match (ORB-SLAM's TH_LOW).
+const SEARCH_MAX_DISTANCE: u32 = 50;
+/// Lowe's ratio of the descriptor search (ORB-SLAM's SearchByBoW: 0.75).
+const SEARCH_RATIO: f64 = 0.75;
+
+/// ORB-SLAM's SearchByBoW without a vocabulary: every map point of keyframe `kf` is matched to
+/// its nearest query descriptor (≤ [`SEARCH_MAX_DISTANCE`], Lowe's ratio), one point per query
+/// keypoint, and only matches in the dominant changes of keypoint orientation are kept. The
+/// loop detector's index only finds descriptors within its tight distance; from another
+/// viewpoint (a second session, a re-entry from the other side) most true matches are
+/// farther, and without them a right candidate fails for want of correspondences.
+fn search_keyframe_points(
+    m: &Measurement,
+    kf: &crate::map::Keyframe,
+    map: &Map,
+) -> Vec<(usize, PointId)> {
+    // Best (distance, point, keyframe keypoint) per query keypoint.
+    let mut best: Vec<Option<(u32, PointId, usize)>> = vec![None; m.len()];
+    for (ri, p) in kf.points.iter().enumerate() {
+        let Some(p) = p else { continue };
+        if !map.points.contains_key(p) {
+            continue;
+        }
+        let d = &kf.descriptors[ri];
+        let (mut b1, mut b2, mut bi) = (u32::MAX, u32::MAX, usize::MAX);
+        for (qi, qd) in m.descriptors.iter().enumerate() {
+            let h = hamming(d, qd);
+            if h < b1 {
+                (b2, b1, bi) = (b1, h, qi);
+            } else if h < b2 {
+                b2 = h;
+            }
+        }
+        if bi == usize::MAX
+            || b1 > SEARCH_MAX_DISTANCE
+            || (b2 != u32::MAX && b1 as f64 >= SEARCH_RATIO * b2 as f64)
+        {
+            continue;
+        }
+        if best[bi].is_none_or(|(h, _, _)| b1 < h) {
+            best[bi] = Some((b1, *p, ri));
+        }
+    }
+    let mut pairs: Vec<(usize, PointId, usize)> = best
+        .iter()
+        .enumerate()
+        .filter_map(|(qi, b)| b.map(|(_, p, ri)| (qi, p, ri)))
+        .collect();
+    let bin = |&(qi, _, ri): &(usize, PointId, usize)| {
+        rotation_bin(kf.keypoints[ri].angle, m.keypoints[qi].angle)
+    };
+    let keep = dominant_rotation_bins(pairs.iter().map(bin));
+    pairs.retain(|x| keep.contains(&bin(x)));
+    pairs.into_iter().map(|(qi, p, _)| (qi, p)).collect()
 }
 
 /// Initial pose of the query in the matched map: 3-D–3-D RANSAC when the query has depth

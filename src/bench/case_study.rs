@@ -51,7 +51,18 @@ pub struct ControllerResult {
     pub closures_accepted_wrong: u64,
     pub closures_rolled_back: u64,
     pub final_state: String,
+    /// Session 2 (step 14): the first frame whose camera is within
+    /// [`KNOWN_VIEW_DISTANCE_M`] and [`KNOWN_VIEW_ANGLE_DEG`] of a session-1 keyframe (ground
+    /// truth of both: the mapped part of Room 2 comes into view) and the first frame in
+    /// Localized; the issue asks for at most 30 frames between them.
+    pub session2_known_view_frame: Option<usize>,
+    pub session2_localized_frame: Option<usize>,
 }
+
+/// Session 2's camera "sees the mapped part of Room 2" when it is this close to where a
+/// session-1 keyframe looked from (the viewpoints the atlas can recognise).
+pub const KNOWN_VIEW_DISTANCE_M: f64 = 1.5;
+pub const KNOWN_VIEW_ANGLE_DEG: f64 = 30.0;
 
 #[derive(Debug, Clone, Serialize)]
 pub struct CaseStudy {
@@ -169,6 +180,15 @@ pub fn case_study(data: &Path, out: &Path, o: &Options) -> Result<(CaseStudy, St
         }
         let rows1 = crate::output::read_states(&dir.join("session1/states.csv"))?;
         let rows2 = crate::output::read_states(&dir.join("session2/states.csv"))?;
+        let known_view = if kind == ControllerKind::Ours {
+            first_known_view(&s1, &s2, &dir.join("session1/keyframes.txt"))?
+        } else {
+            None
+        };
+        let localized = rows2
+            .iter()
+            .find(|r| r.state == "Localized")
+            .map(|r| r.frame);
         let mut steps = timeline::compare(&st1, &rows1, window);
         steps.extend(timeline::compare(&st2, &rows2, window));
         let c = |p: &str| {
@@ -191,6 +211,8 @@ pub fn case_study(data: &Path, out: &Path, o: &Options) -> Result<(CaseStudy, St
             closures_rolled_back: c("/closures/rolled_back"),
             final_state: sum1.final_state.clone(),
             steps,
+            session2_known_view_frame: known_view,
+            session2_localized_frame: localized,
         });
     }
     let cs = CaseStudy {
@@ -204,6 +226,37 @@ pub fn case_study(data: &Path, out: &Path, o: &Options) -> Result<(CaseStudy, St
     let json = serde_json::to_vec_pretty(&cs).map_err(|e| Error::invalid(e.to_string()))?;
     crate::io::atomic_write(&out.join("case_study.json"), &json)?;
     Ok((cs, md))
+}
+
+/// The first session-2 frame (index in rgb.txt) whose ground-truth camera is near the
+/// ground-truth pose of a session-1 keyframe (see [`KNOWN_VIEW_DISTANCE_M`]).
+fn first_known_view(s1: &Path, s2: &Path, keyframes: &Path) -> Result<Option<usize>> {
+    use crate::io::tum::{associate_nearest, read_list, read_trajectory};
+    let gt1 = read_trajectory(&s1.join("groundtruth.txt"))?;
+    let gt2 = read_trajectory(&s2.join("groundtruth.txt"))?;
+    let frames2 = read_list(&s2.join("rgb.txt"))?;
+    let kfs = crate::report::read_keyframes(keyframes)?;
+    let t1: Vec<f64> = gt1.iter().map(|p| p.t).collect();
+    let t_kf: Vec<f64> = kfs.iter().map(|(p, _)| p.t).collect();
+    let views: Vec<_> = associate_nearest(&t_kf, &t1, 0.02)
+        .into_iter()
+        .map(|(_, j)| gt1[j].pose)
+        .collect();
+    let t2: Vec<f64> = gt2.iter().map(|p| p.t).collect();
+    let tf: Vec<f64> = frames2.iter().map(|e| e.t).collect();
+    for (i, j) in associate_nearest(&tf, &t2, 0.02) {
+        let cam = &gt2[j].pose;
+        let near = views.iter().any(|v| {
+            let d = (v.translation.vector - cam.translation.vector).norm();
+            let a = (v.rotation * nalgebra::Vector3::z())
+                .angle(&(cam.rotation * nalgebra::Vector3::z()));
+            d <= KNOWN_VIEW_DISTANCE_M && a.to_degrees() <= KNOWN_VIEW_ANGLE_DEG
+        });
+        if near {
+            return Ok(Some(i));
+        }
+    }
+    Ok(None)
 }
 
 fn scenario_fps(path: &Path) -> Result<f64> {
@@ -287,6 +340,23 @@ fn markdown(
             c.closures_rolled_back,
             c.final_state
         );
+    }
+    for c in &cs.controllers {
+        if let Some(v) = c.session2_known_view_frame {
+            let _ = writeln!(
+                md,
+                "\n{}, session 2: the camera first looks from within {KNOWN_VIEW_DISTANCE_M} m and \
+                 {KNOWN_VIEW_ANGLE_DEG}° of a session-1 keyframe at frame {v}; {}.",
+                c.controller,
+                match c.session2_localized_frame {
+                    Some(l) => format!(
+                        "Localized at frame {l} ({} frames later)",
+                        l as i64 - v as i64
+                    ),
+                    None => "never Localized".into(),
+                }
+            );
+        }
     }
     md
 }

@@ -25,6 +25,9 @@ pub type Pose = (Isometry3<f64>, MapId, KfId);
 /// Candidates validated per query (best scores first): geometry costs a few milliseconds each.
 const CANDIDATES_PER_QUERY: usize = 2;
 
+/// Fewest detector votes for a relocalization near miss to be validated (see `relocalize`).
+const NEAR_MISS_MIN_VOTES: usize = 8;
+
 /// Cells of the expectation check: image width / 32 (20 px at 640 × 480); and of the coverage
 /// of the view by the map: width / 8.
 const EXPECTATION_CELLS_ACROSS: f64 = 32.0;
@@ -375,8 +378,29 @@ impl StateMachine {
         let det = self.detector.detect(&m.descriptors, |img| {
             own.contains(&(img as KfId)) || aliased.contains(&(img as KfId))
         });
-        tracing::trace!("frame {}: relocalization query: {:?}", m.frame, det.report);
-        for c in det.candidates.iter().take(CANDIDATES_PER_QUERY) {
+        tracing::trace!(
+            "frame {}: relocalization query: {:?}, near misses (keyframe, votes) {:?}",
+            m.frame,
+            det.report,
+            det.near_misses
+                .iter()
+                .map(|c| (c.image, c.matches.len()))
+                .collect::<Vec<_>>()
+        );
+        // Without a candidate, the best near miss: a place mapped from another viewpoint
+        // (a second session, the other side of a room) gets only a few of the detector's
+        // tight votes; the validator's wider descriptor search and geometry then decide.
+        let near_miss = det
+            .near_misses
+            .iter()
+            .take(1)
+            .filter(|c| c.matches.len() >= NEAR_MISS_MIN_VOTES);
+        let candidates: Vec<&loop_validator::Candidate> = if det.candidates.is_empty() {
+            near_miss.collect()
+        } else {
+            det.candidates.iter().take(CANDIDATES_PER_QUERY).collect()
+        };
+        for c in candidates {
             let Some(match_map) = self.atlas.map_of_keyframe(c.image as KfId) else {
                 continue;
             };

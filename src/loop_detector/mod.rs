@@ -98,6 +98,9 @@ pub struct DetectionReport {
 pub struct Detection {
     /// Best first (score, then image key).
     pub candidates: Vec<Candidate>,
+    /// The best few images that got votes but too few for a candidate, most votes first: a
+    /// place seen before from another viewpoint gets only these (see `NEAR_MISSES`).
+    pub near_misses: Vec<Candidate>,
     pub report: DetectionReport,
 }
 
@@ -202,6 +205,9 @@ impl<I: DescriptorIndex> LoopDetector<I> {
     }
 }
 
+/// Near misses kept per query.
+pub const NEAR_MISSES: usize = 3;
+
 /// The voting rules, shared by every index: self-similarity filter, ratio test, one query per
 /// reference, then score = votes / query size and the minimum score and match count.
 pub fn score(n_query: usize, r: &QueryResult, p: &LoopDetectorParams) -> Detection {
@@ -229,6 +235,7 @@ pub fn score(n_query: usize, r: &QueryResult, p: &LoopDetectorParams) -> Detecti
         }
     }
     let mut candidates = Vec::new();
+    let mut near_misses = Vec::new();
     let mut best: Vec<(u32, u32)> = Vec::new(); // (query, reference) after the ratio test
     for (&image, ms) in &r.matches {
         best.clear();
@@ -264,17 +271,28 @@ pub fn score(n_query: usize, r: &QueryResult, p: &LoopDetectorParams) -> Detecti
         report.shared_reference += before - best.len();
         let votes = best.len();
         let s = votes as f64 / n_query.max(1) as f64;
+        let c = Candidate {
+            image,
+            score: s,
+            matches: best.clone(),
+        };
         if votes as u32 >= p.min_matches && votes > 0 && s >= p.min_score {
-            candidates.push(Candidate {
-                image,
-                score: s,
-                matches: best.clone(),
-            });
+            candidates.push(c);
+        } else if votes > 0 {
+            near_misses.push(c);
         }
     }
-    candidates.sort_by(|a, b| b.score.total_cmp(&a.score).then(a.image.cmp(&b.image)));
+    let order =
+        |a: &Candidate, b: &Candidate| b.score.total_cmp(&a.score).then(a.image.cmp(&b.image));
+    candidates.sort_by(order);
+    near_misses.sort_by(order);
+    near_misses.truncate(NEAR_MISSES);
     report.candidates = candidates.len();
-    Detection { candidates, report }
+    Detection {
+        candidates,
+        near_misses,
+        report,
+    }
 }
 
 #[cfg(test)]
