@@ -288,6 +288,9 @@ pub struct ControllerConfig {
     pub max_contradiction: f64,
     /// Consecutive failing frames before Localized declares the map corrupted.
     pub corrupted_after_frames: u32,
+    /// Consecutive new keyframes that see through more than `max_contradiction` of the rest of
+    /// their map before Mapping declares the map corrupted (a closure pool changed it).
+    pub keyframes_contradicting: u32,
     /// The expectation check needs at least this many image cells (20 px) where the map
     /// predicts points to judge.
     pub min_expected_cells: u32,
@@ -319,6 +322,7 @@ impl Default for ControllerConfig {
             min_expectation_ratio: 0.3,
             max_contradiction: 0.3,
             corrupted_after_frames: 5,
+            keyframes_contradicting: 1,
             min_expected_cells: 30,
             min_known_coverage: 0.5,
             known_view_distance_m: 0.5,
@@ -624,6 +628,12 @@ impl Config {
         c.range(
             "controller.corrupted_after_frames",
             k.corrupted_after_frames as f64,
+            1.0,
+            100000.0,
+        );
+        c.range(
+            "controller.keyframes_contradicting",
+            k.keyframes_contradicting as f64,
             1.0,
             100000.0,
         );

@@ -21,7 +21,7 @@
 use crate::atlas::{ClosureEdge, PoolId};
 use crate::config::LoopClosingConfig;
 use crate::geometry::Sim3;
-use crate::map::{KfId, Map};
+use crate::map::{KfId, Map, PointId};
 use crate::optim::pose_graph::{self, PgEdge, PgParams, PoseGraph, info7};
 use nalgebra::{Isometry3, Matrix6};
 use std::collections::{BTreeMap, BTreeSet};
@@ -295,40 +295,80 @@ pub fn merge_depth_check(
     alignment: &Isometry3<f64>,
 ) -> Vec<(KfId, usize, usize)> {
     let to_from = alignment.inverse();
-    let mut out = Vec::new();
-    for kf in from.keyframes.values() {
-        let pose = kf.pose_cw * to_from;
-        let (mut judged, mut contradicted) = (0, 0);
-        for p in into.points.values() {
-            let pc = Map::in_camera(&pose, &p.position);
-            if pc.z <= 0.1 {
-                continue;
-            }
-            let Some(uv) = geo.project_in_image(&pc) else {
-                continue;
-            };
-            let near = kf
-                .grid
-                .in_area(&kf.keypoints, uv.x, uv.y, DEPTH_SEARCH_PX, 0, u8::MAX);
-            let depths: Vec<f64> = near
-                .iter()
-                .map(|&i| kf.depth[i] as f64)
-                .filter(|d| *d > 0.0)
-                .collect();
-            if depths.is_empty() {
-                continue;
-            }
-            judged += 1;
-            let tol = depth_tolerance(pc.z);
-            if !depths.iter().any(|d| (d - pc.z).abs() <= tol)
-                && depths.iter().all(|d| *d > pc.z + tol)
-            {
-                contradicted += 1;
-            }
+    from.keyframes
+        .values()
+        .map(|kf| {
+            let (judged, through) =
+                seen_through(geo, kf, &(kf.pose_cw * to_from), into.points.values());
+            (kf.id, judged, through)
+        })
+        .collect()
+}
+
+/// Depth check of a new keyframe against the rest of its own map: the map points it does not
+/// observe, seen from it. Returns (points judged, points it saw clearly through). A map that
+/// a wrong closure joined to a look-alike place passes every check at the place itself, but
+/// once the camera maps beyond what the two places share, its keyframes look through the
+/// other place's structure — the contradiction the expectation check of Localized finds,
+/// here for Mapping.
+pub fn keyframe_depth_check(
+    geo: &crate::preprocess::ImageGeometry,
+    map: &Map,
+    kf: KfId,
+) -> (usize, usize) {
+    let Some(k) = map.keyframes.get(&kf) else {
+        return (0, 0);
+    };
+    // The keyframe's own points and those its neighbourhood made agree with it by
+    // construction: judge the structure mapped from elsewhere.
+    let own: BTreeSet<PointId> = k.points.iter().flatten().copied().collect();
+    let near: BTreeSet<KfId> = k.covisibility.keys().copied().chain([kf]).collect();
+    seen_through(
+        geo,
+        k,
+        &k.pose_cw,
+        map.points
+            .values()
+            .filter(|p| !own.contains(&p.id) && !near.contains(&p.first_kf)),
+    )
+}
+
+/// Points judged by keyframe `kf`'s depth readings from pose `pose_cw`, and those it saw
+/// clearly through (every reading near the projection is farther than the point).
+fn seen_through<'a>(
+    geo: &crate::preprocess::ImageGeometry,
+    kf: &crate::map::Keyframe,
+    pose_cw: &Isometry3<f64>,
+    points: impl Iterator<Item = &'a crate::map::MapPoint>,
+) -> (usize, usize) {
+    let (mut judged, mut contradicted) = (0, 0);
+    for p in points {
+        let pc = Map::in_camera(pose_cw, &p.position);
+        if pc.z <= 0.1 {
+            continue;
         }
-        out.push((kf.id, judged, contradicted));
+        let Some(uv) = geo.project_in_image(&pc) else {
+            continue;
+        };
+        let near = kf
+            .grid
+            .in_area(&kf.keypoints, uv.x, uv.y, DEPTH_SEARCH_PX, 0, u8::MAX);
+        let depths: Vec<f64> = near
+            .iter()
+            .map(|&i| kf.depth[i] as f64)
+            .filter(|d| *d > 0.0)
+            .collect();
+        if depths.is_empty() {
+            continue;
+        }
+        judged += 1;
+        let tol = depth_tolerance(pc.z);
+        if !depths.iter().any(|d| (d - pc.z).abs() <= tol) && depths.iter().all(|d| *d > pc.z + tol)
+        {
+            contradicted += 1;
+        }
     }
-    out
+    (judged, contradicted)
 }
 
 /// Depth tolerance of the expectation check at depth `z` (m): sensor noise plus the spread

@@ -252,6 +252,7 @@ impl StateMachine {
             pose = (Isometry3::identity(), cur, r.keyframe);
         }
         if let Some(kf) = new_kf {
+            self.check_keyframe_depth(cur, kf);
             if self.cfg.loop_closing.enabled {
                 timing.time("loop_closing", || self.close_loops(m, kf, scope));
             } else {
@@ -276,6 +277,54 @@ impl StateMachine {
             self.localize(m, timing);
         }
         Some(pose)
+    }
+
+    /// Mapping region, each new keyframe (with depth, in a map that a closure pool changed):
+    /// does it see through the rest of its map? A wrong closure to a look-alike place shows
+    /// once the camera maps what the two places do not share; `keyframes_contradicting`
+    /// keyframes in a row make the map inconsistent (→ CorruptedMap, which rolls back the
+    /// newest pool of this map until the keyframe no longer contradicts).
+    fn check_keyframe_depth(&mut self, cur: MapId, kf: KfId) {
+        let checks = self
+            .spec
+            .outgoing(State::Core)
+            .any(|t| t.to == State::CorruptedMap);
+        if self.mono || !checks || self.undoable_pools_of(cur).is_empty() {
+            self.contradicting_keyframes = 0;
+            return;
+        }
+        let c = &self.cfg.controller;
+        let (judged, through) =
+            global_optimizer::keyframe_depth_check(&self.geo, &self.atlas.maps[&cur], kf);
+        let share = through as f64 / judged.max(1) as f64;
+        tracing::debug!(
+            "keyframe {kf}: depth check against map {cur}: {through} of {judged} points seen through ({share:.2})"
+        );
+        if judged >= c.min_expected_cells as usize && share > c.max_contradiction {
+            self.contradicting_keyframes += 1;
+        } else {
+            self.contradicting_keyframes = 0;
+        }
+        if self.contradicting_keyframes >= c.keyframes_contradicting {
+            tracing::info!(
+                "keyframe {kf} sees through {through} of the {judged} points of map {cur} it can judge ({:.0} %): the map is inconsistent",
+                100.0 * share
+            );
+            self.contradicting_kf = Some((cur, kf));
+            self.flags.consistent_map = false;
+            self.suspects.clear();
+        }
+    }
+
+    /// Closure pools that touched map `map` and can still be undone, newest first.
+    fn undoable_pools_of(&self, map: MapId) -> Vec<PoolId> {
+        self.atlas
+            .pools
+            .iter()
+            .rev()
+            .filter(|p| p.undoable() && p.maps().contains(&map))
+            .map(|p| p.id)
+            .collect()
     }
 
     /// Mapping region, frame by frame: places of the current map mapped before the loop
@@ -387,14 +436,19 @@ impl StateMachine {
                 .map(|c| (c.image, c.matches.len()))
                 .collect::<Vec<_>>()
         );
-        // Without a candidate, the best near miss: a place mapped from another viewpoint
-        // (a second session, the other side of a room) gets only a few of the detector's
+        // Without a candidate, the best near miss in a loaded atlas: a second session sees the
+        // places of the first from other viewpoints, which get only a few of the detector's
         // tight votes; the validator's wider descriptor search and geometry then decide.
-        let near_miss = det
-            .near_misses
-            .iter()
-            .take(1)
-            .filter(|c| c.matches.len() >= NEAR_MISS_MIN_VOTES);
+        // Only there: within a session such weak evidence merged look-alike places sooner than
+        // the merge depth check could tell them apart (small `aliasing`, one 1 s drop).
+        let loaded = &self.atlas.loaded;
+        let atlas = &self.atlas;
+        let near_miss = det.near_misses.iter().take(1).filter(|c| {
+            c.matches.len() >= NEAR_MISS_MIN_VOTES
+                && atlas
+                    .map_of_keyframe(c.image as KfId)
+                    .is_some_and(|m| loaded.contains(&m))
+        });
         let candidates: Vec<&loop_validator::Candidate> = if det.candidates.is_empty() {
             near_miss.collect()
         } else {
@@ -916,92 +970,12 @@ impl StateMachine {
     fn recover(&mut self) {
         self.flags.able_to_track = false;
         self.merger.poll(&mut self.atlas, true);
-        let mut order: Vec<PoolId> = if self.suspects.is_empty() {
-            self.atlas.last_undoable_pool().into_iter().collect()
+        let recovered = if let Some((map, kf)) = self.contradicting_kf.take() {
+            self.contradicting_keyframes = 0;
+            self.recover_from_keyframe(map, kf)
         } else {
-            self.suspects.clone()
+            self.recover_from_pools()
         };
-        order.sort_unstable_by(|a, b| b.cmp(a));
-        order.dedup();
-        let from_optimizer = !self.suspects.is_empty();
-        let mut recovered = false;
-        for p in order {
-            let Some(rec) = self.atlas.pools.get(p as usize).cloned() else {
-                continue;
-            };
-            if !rec.undoable() {
-                continue;
-            }
-            let before: BTreeSet<KfId> = self
-                .atlas
-                .maps
-                .values()
-                .flat_map(|m| m.keyframes.keys().copied())
-                .collect();
-            let undone = match self.atlas.rollback(p) {
-                Ok(u) => u,
-                Err(e) => {
-                    tracing::warn!("rollback of pool {p} failed: {e}");
-                    continue;
-                }
-            };
-            for u in &undone {
-                let r = &self.atlas.pools[u.pool as usize];
-                match &r.kind {
-                    PoolKind::Merge {
-                        into,
-                        from,
-                        alignment,
-                    } => {
-                        let s: Sim3 = alignment.into();
-                        self.reloc_pool.refuse(*from, *into, s.to_isometry());
-                        self.loop_pool.refuse(*from, *into, s.to_isometry());
-                    }
-                    PoolKind::Loop { map, correction } => {
-                        let s: Sim3 = correction.into();
-                        self.loop_pool.refuse(*map, *map, s.to_isometry());
-                    }
-                }
-                self.mark_aliased(u.pool);
-                if let Some((_, f)) = self.pool_frames.iter().find(|(q, _)| *q == u.pool) {
-                    self.invalidated_from = Some(self.invalidated_from.map_or(*f, |x| x.min(*f)));
-                }
-                for row in self.closures.iter_mut() {
-                    if row.pool == Some(u.pool) {
-                        row.verdict = "rolled-back".into();
-                    }
-                }
-                tracing::info!(
-                    "pool {} rolled back: maps {:?} restored, {} keyframes discarded",
-                    u.pool,
-                    u.maps,
-                    u.discarded_keyframes
-                );
-            }
-            let after: BTreeSet<KfId> = self
-                .atlas
-                .maps
-                .values()
-                .flat_map(|m| m.keyframes.keys().copied())
-                .collect();
-            for gone in before.difference(&after) {
-                self.detector.remove(*gone as u64);
-            }
-            recovered = if from_optimizer {
-                let maps: Vec<MapId> = rec
-                    .maps()
-                    .into_iter()
-                    .filter(|m| self.atlas.maps.contains_key(m))
-                    .collect();
-                maps.into_iter()
-                    .all(|m| self.global_optimization(m, None).consistent)
-            } else {
-                true
-            };
-            if recovered {
-                break;
-            }
-        }
         self.cond.recovered = Some(recovered);
         if recovered {
             self.flags.consistent_map = true;
@@ -1038,6 +1012,135 @@ impl StateMachine {
             tracing::error!("{msg}");
             self.stop_reason = Some(msg.into());
         }
+    }
+
+    /// Mapping's depth check condemned keyframe `kf` of map `map`: the pools that changed
+    /// that map are undone, newest first, until the keyframe is gone with one (it was made
+    /// on the wrong map) or no longer sees through its map.
+    fn recover_from_keyframe(&mut self, map: MapId, kf: KfId) -> bool {
+        let c = &self.cfg.controller;
+        let (min_judged, max_share) = (c.min_expected_cells as usize, c.max_contradiction);
+        for p in self.undoable_pools_of(map) {
+            if !self.undo_pool(p) {
+                continue;
+            }
+            let Some(m) = self.atlas.map_of_keyframe(kf) else {
+                return true;
+            };
+            let (judged, through) =
+                global_optimizer::keyframe_depth_check(&self.geo, &self.atlas.maps[&m], kf);
+            if judged < min_judged || through as f64 / judged as f64 <= max_share {
+                return true;
+            }
+        }
+        false
+    }
+
+    /// Localized's expectation check or the global optimizer condemned the map: the flagged
+    /// pools (or the newest undoable one) are undone, newest first, until the optimizer finds
+    /// the maps consistent again.
+    fn recover_from_pools(&mut self) -> bool {
+        let mut order: Vec<PoolId> = if self.suspects.is_empty() {
+            self.atlas.last_undoable_pool().into_iter().collect()
+        } else {
+            self.suspects.clone()
+        };
+        order.sort_unstable_by(|a, b| b.cmp(a));
+        order.dedup();
+        let from_optimizer = !self.suspects.is_empty();
+        for p in order {
+            let Some(rec) = self.atlas.pools.get(p as usize).cloned() else {
+                continue;
+            };
+            if !self.undo_pool(p) {
+                continue;
+            }
+            let recovered = if from_optimizer {
+                let maps: Vec<MapId> = rec
+                    .maps()
+                    .into_iter()
+                    .filter(|m| self.atlas.maps.contains_key(m))
+                    .collect();
+                maps.into_iter()
+                    .all(|m| self.global_optimization(m, None).consistent)
+            } else {
+                true
+            };
+            if recovered {
+                return true;
+            }
+        }
+        false
+    }
+
+    /// Rolls pool `p` back (and the later pools built on it): their alignments are refused
+    /// from now on, their anchors marked look-alikes, their rows in closures.csv rolled back.
+    /// False when the pool cannot be undone.
+    fn undo_pool(&mut self, p: PoolId) -> bool {
+        if !self
+            .atlas
+            .pools
+            .get(p as usize)
+            .is_some_and(|r| r.undoable())
+        {
+            return false;
+        }
+        let before: BTreeSet<KfId> = self
+            .atlas
+            .maps
+            .values()
+            .flat_map(|m| m.keyframes.keys().copied())
+            .collect();
+        let undone = match self.atlas.rollback(p) {
+            Ok(u) => u,
+            Err(e) => {
+                tracing::warn!("rollback of pool {p} failed: {e}");
+                return false;
+            }
+        };
+        for u in &undone {
+            let r = &self.atlas.pools[u.pool as usize];
+            match &r.kind {
+                PoolKind::Merge {
+                    into,
+                    from,
+                    alignment,
+                } => {
+                    let s: Sim3 = alignment.into();
+                    self.reloc_pool.refuse(*from, *into, s.to_isometry());
+                    self.loop_pool.refuse(*from, *into, s.to_isometry());
+                }
+                PoolKind::Loop { map, correction } => {
+                    let s: Sim3 = correction.into();
+                    self.loop_pool.refuse(*map, *map, s.to_isometry());
+                }
+            }
+            self.mark_aliased(u.pool);
+            if let Some((_, f)) = self.pool_frames.iter().find(|(q, _)| *q == u.pool) {
+                self.invalidated_from = Some(self.invalidated_from.map_or(*f, |x| x.min(*f)));
+            }
+            for row in self.closures.iter_mut() {
+                if row.pool == Some(u.pool) {
+                    row.verdict = "rolled-back".into();
+                }
+            }
+            tracing::info!(
+                "pool {} rolled back: maps {:?} restored, {} keyframes discarded",
+                u.pool,
+                u.maps,
+                u.discarded_keyframes
+            );
+        }
+        let after: BTreeSet<KfId> = self
+            .atlas
+            .maps
+            .values()
+            .flat_map(|m| m.keyframes.keys().copied())
+            .collect();
+        for gone in before.difference(&after) {
+            self.detector.remove(*gone as u64);
+        }
+        true
     }
 
     /// ORB-SLAM2 when lost: relocalize in the map (first valid candidate); frames get no pose

@@ -95,6 +95,10 @@ pub struct StateMachine {
     /// Why the map was found inconsistent: pools the global optimizer flagged (empty: the
     /// expectation check failed).
     suspects: Vec<u32>,
+    /// Mapping's depth check (see `global_optimizer::keyframe_depth_check`): consecutive new
+    /// keyframes that saw through the rest of their map, and the last of them.
+    contradicting_keyframes: u32,
+    contradicting_kf: Option<(MapId, KfId)>,
     /// Keyframes that anchored a closure pool the map later contradicted (and their best
     /// covisible neighbours): proven look-alikes of another place, they no longer anchor
     /// relocalizations or loop closures, so the same wrong closure is not made again from a
@@ -150,6 +154,8 @@ impl StateMachine {
             expectation_failures: 0,
             unknown_view_frames: 0,
             suspects: Vec::new(),
+            contradicting_keyframes: 0,
+            contradicting_kf: None,
             aliased: Default::default(),
             closures: Vec::new(),
             pool_frames: Vec::new(),

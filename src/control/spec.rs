@@ -324,6 +324,7 @@ fn ours() -> MachineSpec {
             tr(Idle, Core, AbleToTrack),
             tr(Core, Idle, NotAbleToTrack),
             tr(Core, Localized, AbleToLocalize),
+            tr(Core, CorruptedMap, NotConsistentMap),
             tr(Localized, CorruptedMap, NotConsistentMap),
             tr(Localized, Idle, NotAbleToTrack),
             tr(Localized, Core, LeftKnownArea),
