@@ -444,3 +444,97 @@ pub fn expectation(
         covered_cells: features.intersection(&known).count(),
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::optim::Intrinsics;
+    use crate::preprocess::{FeatureGrid, ImageGeometry, Keypoint, Measurement};
+    use nalgebra::{Vector2, Vector3};
+
+    /// A 20 × 15 grid of keypoints over a 640 × 480 image, every one with depth `depth`.
+    fn wall_view(frame: usize, depth: f32) -> Measurement {
+        let mut keypoints = Vec::new();
+        for j in 0..15 {
+            for i in 0..20 {
+                let uv = Vector2::new(16.0 + 32.0 * i as f64, 16.0 + 32.0 * j as f64);
+                keypoints.push(Keypoint {
+                    raw: uv,
+                    un: uv,
+                    octave: 0,
+                    angle: 0.0,
+                    response: 1.0,
+                });
+            }
+        }
+        Measurement {
+            frame,
+            t: frame as f64,
+            grid: FeatureGrid::new(640, 480, &keypoints),
+            descriptors: vec![[0u8; 32]; keypoints.len()],
+            depth: vec![depth; keypoints.len()],
+            keypoints,
+        }
+    }
+
+    /// A keyframe at the origin whose points lie at its depth readings.
+    fn add_wall_keyframe(map: &mut Map, geo: &ImageGeometry, frame: usize, depth: f32) -> KfId {
+        let m = wall_view(frame, depth);
+        let kf = map.add_keyframe(&m, Isometry3::identity());
+        for (i, kp) in m.keypoints.iter().enumerate() {
+            let i_ = &geo.intr;
+            let z = depth as f64;
+            let p = Vector3::new(
+                (kp.un.x - i_.cx) * z / i_.fx,
+                (kp.un.y - i_.cy) * z / i_.fy,
+                z,
+            );
+            map.add_point(kf, i, p, 1.2, 8);
+        }
+        kf
+    }
+
+    #[test]
+    fn a_keyframe_that_sees_through_older_structure_is_flagged() {
+        let geo = ImageGeometry::new(Intrinsics::TUM_FREIBURG1, 640, 480, 1.2, 8);
+        // The map says a wall stands 2 m ahead; a later keyframe from the same place reads
+        // 3.5 m everywhere (a look-alike place with the far wall farther away).
+        let mut map = Map::new(0);
+        add_wall_keyframe(&mut map, &geo, 0, 2.0);
+        let new = add_wall_keyframe(&mut map, &geo, 1, 3.5);
+        let (judged, through) = keyframe_depth_check(&geo, &map, new);
+        assert!(judged >= 250, "judged {judged}");
+        assert!(
+            through as f64 > 0.9 * judged as f64,
+            "{through} of {judged}"
+        );
+
+        // The same wall seen again: nothing is contradicted.
+        let mut map = Map::new(0);
+        add_wall_keyframe(&mut map, &geo, 0, 2.0);
+        let again = add_wall_keyframe(&mut map, &geo, 1, 2.05);
+        let (judged, through) = keyframe_depth_check(&geo, &map, again);
+        assert!(judged >= 250, "judged {judged}");
+        assert_eq!(through, 0);
+
+        // Structure seen farther than the map's: occlusion is no contradiction.
+        let mut map = Map::new(0);
+        add_wall_keyframe(&mut map, &geo, 0, 3.5);
+        let nearer = add_wall_keyframe(&mut map, &geo, 1, 2.0);
+        assert_eq!(keyframe_depth_check(&geo, &map, nearer).1, 0);
+    }
+
+    #[test]
+    fn points_of_covisible_keyframes_are_not_judged() {
+        let geo = ImageGeometry::new(Intrinsics::TUM_FREIBURG1, 640, 480, 1.2, 8);
+        let mut map = Map::new(0);
+        let old = add_wall_keyframe(&mut map, &geo, 0, 2.0);
+        let new = add_wall_keyframe(&mut map, &geo, 1, 3.5);
+        map.keyframes
+            .get_mut(&new)
+            .unwrap()
+            .covisibility
+            .insert(old, 100);
+        assert_eq!(keyframe_depth_check(&geo, &map, new), (0, 0));
+    }
+}

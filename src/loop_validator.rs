@@ -655,4 +655,64 @@ mod tests {
         let r = relative_information(&Isometry3::identity(), &info);
         assert!((r - info).norm() < 1e-12);
     }
+
+    /// A view of `n` keypoints with the given descriptors (all with depth 2 m).
+    fn view(frame: usize, descriptors: Vec<[u8; 32]>) -> Measurement {
+        use crate::preprocess::{FeatureGrid, Keypoint};
+        let keypoints: Vec<Keypoint> = (0..descriptors.len())
+            .map(|i| {
+                let uv = nalgebra::Vector2::new(20.0 + 6.0 * i as f64, 240.0);
+                Keypoint {
+                    raw: uv,
+                    un: uv,
+                    octave: 0,
+                    angle: 30.0,
+                    response: 1.0,
+                }
+            })
+            .collect();
+        Measurement {
+            frame,
+            t: frame as f64,
+            grid: FeatureGrid::new(640, 480, &keypoints),
+            depth: vec![2.0; keypoints.len()],
+            descriptors,
+            keypoints,
+        }
+    }
+
+    #[test]
+    fn descriptor_search_finds_matches_beyond_the_detector_threshold() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        let n = 80;
+        let stored: Vec<[u8; 32]> = (0..n).map(|_| rng.random()).collect();
+        // The same places from another viewpoint: 35 of 256 bits changed (the detector's
+        // index keeps only matches within 25), in reverse order.
+        let mut seen: Vec<[u8; 32]> = stored
+            .iter()
+            .map(|d| {
+                let mut d = *d;
+                for b in rand::seq::index::sample(&mut rng, 256, 35) {
+                    d[b / 8] ^= 1 << (b % 8);
+                }
+                d
+            })
+            .collect();
+        seen.reverse();
+        let mut map = Map::new(0);
+        let kf = map.add_keyframe(&view(0, stored), Isometry3::identity());
+        let ids: Vec<PointId> = (0..n)
+            .map(|i| map.add_point(kf, i, Vector3::new(i as f64 * 0.01, 0.0, 2.0), 1.2, 8))
+            .collect();
+        let q = view(1, seen);
+        let pairs = search_keyframe_points(&q, &map.keyframes[&kf], &map);
+        assert_eq!(pairs.len(), n, "{pairs:?}");
+        for (qi, p) in pairs {
+            assert_eq!(p, ids[n - 1 - qi], "query keypoint {qi}");
+        }
+        // Unrelated descriptors (about 128 bits away) give nothing.
+        let other: Vec<[u8; 32]> = (0..n).map(|_| rng.random()).collect();
+        assert!(search_keyframe_points(&view(2, other), &map.keyframes[&kf], &map).is_empty());
+    }
 }
