@@ -350,14 +350,7 @@ fn seen_through<'a>(
         let Some(uv) = geo.project_in_image(&pc) else {
             continue;
         };
-        let near = kf
-            .grid
-            .in_area(&kf.keypoints, uv.x, uv.y, DEPTH_SEARCH_PX, 0, u8::MAX);
-        let depths: Vec<f64> = near
-            .iter()
-            .map(|&i| kf.depth[i] as f64)
-            .filter(|d| *d > 0.0)
-            .collect();
+        let depths = depths_near(&kf.grid, &kf.keypoints, &kf.depth, uv.x, uv.y);
         if depths.is_empty() {
             continue;
         }
@@ -380,6 +373,21 @@ fn depth_tolerance(z: f64) -> f64 {
 /// Image radius (pixels) searched around a projected point for keypoints with depth.
 const DEPTH_SEARCH_PX: f64 = 6.0;
 
+/// Depth readings (m) of the keypoints within [`DEPTH_SEARCH_PX`] of pixel (`u`, `v`).
+fn depths_near(
+    grid: &crate::preprocess::FeatureGrid,
+    keypoints: &[crate::preprocess::Keypoint],
+    depth: &[f32],
+    u: f64,
+    v: f64,
+) -> Vec<f64> {
+    grid.in_area(keypoints, u, v, DEPTH_SEARCH_PX, 0, u8::MAX)
+        .iter()
+        .map(|&i| depth[i] as f64)
+        .filter(|d| *d > 0.0)
+        .collect()
+}
+
 pub fn expectation(
     geo: &crate::preprocess::ImageGeometry,
     map: &Map,
@@ -397,14 +405,7 @@ pub fn expectation(
             continue;
         };
         predicted.push((uv.x, uv.y));
-        let near = m
-            .grid
-            .in_area(&m.keypoints, uv.x, uv.y, DEPTH_SEARCH_PX, 0, u8::MAX);
-        let depths: Vec<f64> = near
-            .iter()
-            .map(|&i| m.depth[i] as f64)
-            .filter(|d| *d > 0.0)
-            .collect();
+        let depths = depths_near(&m.grid, &m.keypoints, &m.depth, uv.x, uv.y);
         if depths.is_empty() {
             continue;
         }

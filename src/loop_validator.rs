@@ -221,33 +221,7 @@ fn search_keyframe_points(
     kf: &crate::map::Keyframe,
     map: &Map,
 ) -> Vec<(usize, PointId)> {
-    // Best (distance, point, keyframe keypoint) per query keypoint.
-    let mut best: Vec<Option<(u32, PointId, usize)>> = vec![None; m.len()];
-    for (ri, p) in kf.points.iter().enumerate() {
-        let Some(p) = p else { continue };
-        if !map.points.contains_key(p) {
-            continue;
-        }
-        let d = &kf.descriptors[ri];
-        let (mut b1, mut b2, mut bi) = (u32::MAX, u32::MAX, usize::MAX);
-        for (qi, qd) in m.descriptors.iter().enumerate() {
-            let h = hamming(d, qd);
-            if h < b1 {
-                (b2, b1, bi) = (b1, h, qi);
-            } else if h < b2 {
-                b2 = h;
-            }
-        }
-        if bi == usize::MAX
-            || b1 > SEARCH_MAX_DISTANCE
-            || (b2 != u32::MAX && b1 as f64 >= SEARCH_RATIO * b2 as f64)
-        {
-            continue;
-        }
-        if best[bi].is_none_or(|(h, _, _)| b1 < h) {
-            best[bi] = Some((b1, *p, ri));
-        }
-    }
+    let best = map.search_by_descriptor(kf, m, SEARCH_MAX_DISTANCE, SEARCH_RATIO);
     let mut pairs: Vec<(usize, PointId, usize)> = best
         .iter()
         .enumerate()

@@ -358,6 +358,43 @@ impl Map {
             .covisibility = counts;
     }
 
+    /// Brute-force descriptor search (ORB-SLAM's SearchByBoW without a vocabulary): each live
+    /// map point of keyframe `kf` goes to its nearest descriptor of `m` if that is within
+    /// `max_distance` and below `ratio` × the second nearest; a keypoint keeps the closest
+    /// point. Per keypoint of `m`: (distance, point, keypoint index in `kf`).
+    pub fn search_by_descriptor(
+        &self,
+        kf: &Keyframe,
+        m: &Measurement,
+        max_distance: u32,
+        ratio: f64,
+    ) -> Vec<Option<(u32, PointId, usize)>> {
+        let mut best: Vec<Option<(u32, PointId, usize)>> = vec![None; m.len()];
+        for (kp, pid) in kf.points.iter().enumerate() {
+            let Some(pid) = pid else { continue };
+            if !self.points.contains_key(pid) {
+                continue;
+            }
+            let d = &kf.descriptors[kp];
+            let (mut b1, mut b2, mut bi) = (u32::MAX, u32::MAX, usize::MAX);
+            for (i, md) in m.descriptors.iter().enumerate() {
+                let h = hamming(d, md);
+                if h < b1 {
+                    (b2, b1, bi) = (b1, h, i);
+                } else if h < b2 {
+                    b2 = h;
+                }
+            }
+            if bi == usize::MAX || b1 > max_distance || b1 as f64 >= ratio * b2 as f64 {
+                continue;
+            }
+            if best[bi].is_none_or(|(h, _, _)| b1 < h) {
+                best[bi] = Some((b1, *pid, kp));
+            }
+        }
+        best
+    }
+
     /// Keyframes observing any of `points`, plus their best covisible neighbours.
     pub fn local_keyframes(&self, points: impl Iterator<Item = PointId>, max: usize) -> Vec<KfId> {
         let mut votes: BTreeMap<KfId, u32> = BTreeMap::new();

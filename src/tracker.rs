@@ -231,28 +231,11 @@ impl Tracker {
     ) -> Option<(Isometry3<f64>, Vec<Option<PointId>>, TrackMethod)> {
         let kf = map.keyframes.get(&self.reference_kf?)?;
         // Brute-force descriptor matching of the keyframe's mapped keypoints, with Lowe's ratio.
-        let mut matches: Vec<Option<PointId>> = vec![None; m.len()];
-        let mut best_dist = vec![u32::MAX; m.len()];
-        for (kp, pid) in kf.points.iter().enumerate() {
-            let Some(pid) = pid else { continue };
-            if !map.points.contains_key(pid) {
-                continue;
-            }
-            let d = &kf.descriptors[kp];
-            let (mut b1, mut b2, mut bi) = (u32::MAX, u32::MAX, 0);
-            for (i, md) in m.descriptors.iter().enumerate() {
-                let h = hamming(d, md);
-                if h < b1 {
-                    (b2, b1, bi) = (b1, h, i);
-                } else if h < b2 {
-                    b2 = h;
-                }
-            }
-            if b1 <= 50 && (b1 as f64) < 0.7 * b2 as f64 && b1 < best_dist[bi] {
-                best_dist[bi] = b1;
-                matches[bi] = Some(*pid);
-            }
-        }
+        let matches: Vec<Option<PointId>> = map
+            .search_by_descriptor(kf, m, 50, 0.7)
+            .into_iter()
+            .map(|b| b.map(|(_, p, _)| p))
+            .collect();
         let n = matches.iter().flatten().count();
         if n < 15 {
             return None;

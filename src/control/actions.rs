@@ -441,13 +441,12 @@ impl StateMachine {
         // tight votes; the validator's wider descriptor search and geometry then decide.
         // Only there: within a session such weak evidence merged look-alike places sooner than
         // the merge depth check could tell them apart (small `aliasing`, one 1 s drop).
-        let loaded = &self.atlas.loaded;
         let atlas = &self.atlas;
         let near_miss = det.near_misses.iter().take(1).filter(|c| {
             c.matches.len() >= NEAR_MISS_MIN_VOTES
                 && atlas
                     .map_of_keyframe(c.image as KfId)
-                    .is_some_and(|m| loaded.contains(&m))
+                    .is_some_and(|m| atlas.loaded.contains(&m))
         });
         let candidates: Vec<&loop_validator::Candidate> = if det.candidates.is_empty() {
             near_miss.collect()
@@ -578,6 +577,23 @@ impl StateMachine {
         }
     }
 
+    /// The closures.csv rows of `acc`'s candidates, still pending, get their verdict.
+    fn settle_pending_rows(&mut self, acc: &Accepted, verdict: &str, pool: Option<PoolId>) {
+        for row in self.closures.iter_mut().rev() {
+            if row.verdict == "pending"
+                && acc
+                    .members
+                    .iter()
+                    .any(|v| v.frame == row.frame && v.matched == row.matched_kf)
+            {
+                row.verdict = verdict.into();
+                if pool.is_some() {
+                    row.pool = pool;
+                }
+            }
+        }
+    }
+
     /// A pool whose merge the depth check refused (see `global_optimizer::merge_depth_check`):
     /// its alignment is refused from now on, its candidates are logged as rejected and the
     /// keyframes they matched are look-alikes.
@@ -596,16 +612,7 @@ impl StateMachine {
             .refuse(acc.query_map, acc.match_map, acc.alignment);
         self.reloc_pool.clear();
         self.loop_pool.clear();
-        for row in self.closures.iter_mut().rev() {
-            if row.verdict == "pending"
-                && acc
-                    .members
-                    .iter()
-                    .any(|v| v.frame == row.frame && v.matched == row.matched_kf)
-            {
-                row.verdict = "rejected:map-contradiction".into();
-            }
-        }
+        self.settle_pending_rows(&acc, "rejected:map-contradiction", None);
         self.mark_lookalikes(acc.members.iter().map(|v| v.matched).collect());
     }
 
@@ -721,17 +728,7 @@ impl StateMachine {
             }
             tracing::info!("frame {}: map {from} merged into map {into}", m.frame);
         }
-        for row in self.closures.iter_mut().rev() {
-            if row.verdict == "pending"
-                && acc
-                    .members
-                    .iter()
-                    .any(|v| v.frame == row.frame && v.matched == row.matched_kf)
-            {
-                row.verdict = "accepted".into();
-                row.pool = Some(pool);
-            }
-        }
+        self.settle_pending_rows(&acc, "accepted", Some(pool));
         let last = acc.members.last().expect("a pool has members");
         let anchor_before = self.atlas.maps[&into]
             .keyframes
