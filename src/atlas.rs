@@ -30,10 +30,58 @@ pub struct ClosureEdge {
     pub query: KfId,
     /// The keyframe it was recognised in.
     pub matched: KfId,
-    /// Measured pose of `query` in the frame of `matched`: `T_matched,w · T_query,w⁻¹`.
+    /// Measured pose of `query` in the frame of `matched`: `T_matched,w · T_query,w⁻¹`, in
+    /// the two keyframes' creation units (see `Keyframe::units`).
     pub relative: Isometry3<f64>,
+    /// Measured scale of `query`'s camera frame in `matched`'s (monocular: lengths around
+    /// the query per length around the match, in creation units; 1 with depth).
+    pub scale: f64,
     /// Information (inverse covariance) of `relative`, (ω, υ) order.
     pub information: Matrix6<f64>,
+}
+
+impl ClosureEdge {
+    /// An edge from the similarity `z` (query camera → matched camera) measured while the
+    /// keyframes had units `u_matched` and `u_query`.
+    pub fn new(
+        pool: PoolId,
+        query: KfId,
+        matched: KfId,
+        z: &Sim3,
+        (u_matched, u_query): (f64, f64),
+        information: Matrix6<f64>,
+    ) -> Self {
+        let z = in_units(z, 1.0 / u_matched, u_query);
+        Self {
+            pool,
+            query,
+            matched,
+            relative: z.to_isometry(),
+            scale: z.scale,
+            information,
+        }
+    }
+
+    /// The measurement in the keyframes' current units.
+    pub fn measurement(&self, u_matched: f64, u_query: f64) -> Sim3 {
+        let z = Sim3 {
+            scale: self.scale,
+            ..Sim3::from_isometry(&self.relative)
+        };
+        in_units(&z, u_matched, 1.0 / u_query)
+    }
+}
+
+/// `S(a) ∘ z ∘ S(b)`, `S(x)` the pure scaling by `x` (exactly `z` when both are 1).
+fn in_units(z: &Sim3, a: f64, b: f64) -> Sim3 {
+    if a == 1.0 && b == 1.0 {
+        return *z;
+    }
+    Sim3 {
+        rotation: z.rotation,
+        translation: a * z.translation,
+        scale: a * z.scale * b,
+    }
 }
 
 /// What a pool did.
@@ -136,7 +184,7 @@ pub struct Atlas {
 
 /// File header: magic, then version, payload length and CRC-32 of the payload.
 const MAGIC: &[u8; 13] = b"homing-atlas\n";
-pub const ATLAS_VERSION: u32 = 1;
+pub const ATLAS_VERSION: u32 = 2;
 
 /// What is saved besides the maps, to refuse an atlas made with another camera.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -492,6 +540,7 @@ fn transformed(mut map: Map, s: &Sim3) -> Map {
         for d in kf.depth.iter_mut() {
             *d *= s.scale as f32;
         }
+        kf.units *= s.scale;
     }
     for p in map.points.values_mut() {
         p.position = s.transform_point(&p.position);

@@ -138,7 +138,10 @@ pub fn optimize_map(
         graph.edges.push(PgEdge {
             i: im,
             j: iq,
-            measurement: Sim3::from_isometry(&c.relative),
+            measurement: c.measurement(
+                map.keyframes[&c.matched].units,
+                map.keyframes[&c.query].units,
+            ),
             information: info7(&closure_information(cfg, &c.information), scale_info),
             robust: true,
         });
@@ -217,7 +220,16 @@ fn apply(map: &mut Map, ids: &[KfId], before: &[Sim3], graph: &PoseGraph) {
         let new = graph.nodes[k].pose;
         correction.insert(*id, new.inverse().compose(&before[k]));
         let kf = map.keyframes.get_mut(id).expect("listed");
+        // `S = [sR | t]` maps the world to camera coordinates `s` times too long: the camera
+        // is `[R | t/s]` and its frame's lengths change by `1/s` (ORB-SLAM's loop correction).
         let mut pose: Isometry3<f64> = new.to_isometry();
+        if new.scale != 1.0 {
+            pose.translation.vector /= new.scale;
+            kf.units /= new.scale;
+            for i in 3..6 {
+                kf.twist[i] /= new.scale;
+            }
+        }
         pose.rotation.renormalize();
         kf.pose_cw = pose;
     }
@@ -233,6 +245,8 @@ fn apply(map: &mut Map, ids: &[KfId], before: &[Sim3], graph: &PoseGraph) {
         if let Some(c) = r.and_then(|r| correction.get(&r)) {
             p.position = c.transform_point(&p.position);
             p.normal = c.rotation * p.normal;
+            p.min_distance *= c.scale;
+            p.max_distance *= c.scale;
         }
     }
 }

@@ -8,7 +8,10 @@
 //!    points) for a 3-D–3-D RANSAC (Umeyama), or 2-D–3-D for OpenCV's PnP RANSAC when the query
 //!    has too little depth; the pose found is then refined against the keyframe's whole local
 //!    map (projection search + robust pose-only optimisation). Enough inliers, and a large
-//!    enough share of the projected points found, make the candidate *valid*.
+//!    enough share of the projected points found, make the candidate *valid*. Without depth
+//!    (monocular) the query's own map points give the other side of a similarity: Sim3 RANSAC
+//!    (ORB-SLAM's Sim3Solver) for the initial pose, and the scale of the query's map in the
+//!    matched one from the refined inliers, so that closures and merges correct scale drift.
 //! 2. **A pool** (the delayed decision of paper section III): a valid candidate implies an
 //!    alignment of the query's map onto the matched map (for a loop inside one map: the
 //!    correction of the drift). A closure is accepted only when `pool_size` valid candidates
@@ -19,6 +22,7 @@
 
 use crate::aligner::{backproject, pnp_ransac, rigid_ransac};
 use crate::config::LoopClosingConfig;
+use crate::geometry::Sim3;
 use crate::map::{KfId, Map, PointId};
 use crate::optim::{
     Observation, PoseObservation, PoseParams, octave_information, refine_pose, se3,
@@ -26,6 +30,7 @@ use crate::optim::{
 use crate::preprocess::{
     ImageGeometry, Measurement, dominant_rotation_bins, hamming, rotation_bin,
 };
+use crate::two_view::{Sim3RansacParams, sim3_ransac};
 use nalgebra::{Isometry3, Matrix6, Point3, Vector2, Vector3};
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 
@@ -37,6 +42,8 @@ pub enum Rejection {
     TooFewMatches,
     Geometry,
     Refinement,
+    /// Monocular: too few inliers carry a point of the query's map to measure the scale.
+    Scale,
     RolledBackAlignment,
 }
 
@@ -46,6 +53,7 @@ impl Rejection {
             Self::TooFewMatches => "rejected:too-few-matches",
             Self::Geometry => "rejected:geometry",
             Self::Refinement => "rejected:refinement",
+            Self::Scale => "rejected:scale",
             Self::RolledBackAlignment => "rejected:rolled-back-alignment",
         }
     }
@@ -68,6 +76,9 @@ pub struct Valid {
     /// The query frame's pose in its own map, and the one found in the matched map.
     pub query_pose: Isometry3<f64>,
     pub pose_in_match: Isometry3<f64>,
+    /// Lengths in the matched map per length in the query's map (monocular; 1 with depth):
+    /// query-camera coordinates times `scale` are `pose_in_match`'s camera coordinates.
+    pub scale: f64,
     /// Query keypoint → matched-map point, inliers of the refinement.
     pub matches: Vec<Option<PointId>>,
     pub n_inliers: usize,
@@ -77,8 +88,19 @@ pub struct Valid {
 
 impl Valid {
     /// The alignment this candidate implies: query-map world → matched-map world.
-    pub fn alignment(&self) -> Isometry3<f64> {
-        self.pose_in_match.inverse() * self.query_pose
+    pub fn alignment(&self) -> Sim3 {
+        let rigid = Sim3::from_isometry(&(self.pose_in_match.inverse() * self.query_pose));
+        if self.scale == 1.0 {
+            return rigid;
+        }
+        let q = Sim3::from_isometry(&self.query_pose);
+        let scaled = Sim3 {
+            scale: self.scale,
+            ..Sim3::identity()
+        };
+        Sim3::from_isometry(&self.pose_in_match.inverse())
+            .compose(&scaled)
+            .compose(&q)
     }
 }
 
@@ -105,6 +127,9 @@ pub struct Query<'a> {
     pub kf: Option<KfId>,
     /// The keyframe `pose` refers to (see [`Valid::reference_kf`]).
     pub reference_kf: Option<KfId>,
+    /// Without depth: the query's map and the point of each query keypoint there (a
+    /// keyframe's points, or a tracked frame's inlier matches), for the similarity.
+    pub own: Option<(&'a Map, &'a [Option<PointId>])>,
 }
 
 /// Geometric validation of one candidate against keyframe `c.matched` of `map`.
@@ -149,7 +174,10 @@ pub fn validate(
     if pairs.len() < cfg.min_matches as usize {
         return reject(Rejection::TooFewMatches, pairs.len(), None);
     }
-    let Some(initial) = ransac_pose(cfg, geo, q.m, map, &pairs) else {
+    let similarity = q
+        .own
+        .and_then(|(own, points)| sim3_pose(cfg, geo, q, own, points, map, kf, &pairs));
+    let Some(initial) = similarity.or_else(|| ransac_pose(cfg, geo, q.m, map, &pairs)) else {
         return reject(Rejection::Geometry, 0, None);
     };
     // Refinement against the matched keyframe's local map.
@@ -188,6 +216,13 @@ pub fn validate(
         .zip(&inliers)
         .map(|(m, ok)| if *ok { *m } else { None })
         .collect();
+    let scale = match q.own {
+        None => 1.0,
+        Some((own, points)) => match map_scale(q, own, points, map, &pose, &inlier_matches) {
+            Some(s) => s,
+            None => return reject(Rejection::Scale, n, Some(pose)),
+        },
+    };
     let information = pose_information(geo, q.m, map, &pose, &inlier_matches);
     Verdict::Valid(Box::new(Valid {
         frame: q.m.frame,
@@ -199,6 +234,7 @@ pub fn validate(
         reference_kf: q.reference_kf.or(q.kf),
         query_pose: q.pose,
         pose_in_match: pose,
+        scale,
         matches: inlier_matches,
         n_inliers: n,
         information,
@@ -233,6 +269,85 @@ fn search_keyframe_points(
     let keep = dominant_rotation_bins(pairs.iter().map(bin));
     pairs.retain(|x| keep.contains(&bin(x)));
     pairs.into_iter().map(|(qi, p, _)| (qi, p)).collect()
+}
+
+/// Fewest inliers of the monocular similarity RANSAC (ORB-SLAM2's loop closing: 20).
+const SIM3_MIN_INLIERS: usize = 20;
+/// Fewest refined inliers with a point of the query's map to measure the scale.
+const SCALE_MIN_PAIRS: usize = 10;
+
+/// Monocular initial pose (ORB-SLAM's Sim3Solver): the query's own points in its camera
+/// frame ↔ the paired points in the matched keyframe's, observed there by `kf`; a similarity by
+/// RANSAC with reprojection inliers in both images. Returns the query camera's pose in the
+/// matched map (its camera frame rescaled to the matched map's lengths).
+#[allow(clippy::too_many_arguments)]
+fn sim3_pose(
+    cfg: &LoopClosingConfig,
+    geo: &ImageGeometry,
+    q: &Query,
+    own: &Map,
+    own_points: &[Option<PointId>],
+    map: &Map,
+    kf: &crate::map::Keyframe,
+    pairs: &[(usize, PointId)],
+) -> Option<Isometry3<f64>> {
+    let (mut p1, mut p2, mut uv1, mut uv2) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    for &(qi, pm) in pairs {
+        let Some(xq) = own_points
+            .get(qi)
+            .copied()
+            .flatten()
+            .and_then(|p| own.points.get(&p))
+        else {
+            continue;
+        };
+        let xm = &map.points[&pm];
+        let Some(&ri) = xm.observations.get(&kf.id) else {
+            continue;
+        };
+        p1.push((q.pose * Point3::from(xq.position)).coords);
+        p2.push((kf.pose_cw * Point3::from(xm.position)).coords);
+        uv1.push(q.m.keypoints[qi].un);
+        uv2.push(kf.keypoints[ri].un);
+    }
+    let params = Sim3RansacParams {
+        sigma: 1.5,
+        min_inliers: SIM3_MIN_INLIERS.max(cfg.min_inliers as usize / 2),
+        ..Default::default()
+    };
+    let (s21, _) = sim3_ransac(&p1, &p2, &uv1, &uv2, &geo.intr, &geo.intr, &params)?;
+    // p_kf = s·R·p_query + t: with the query camera's lengths times s, `[R | t]` is the query
+    // camera in the keyframe's frame.
+    let t_kq = s21.to_isometry();
+    Some(t_kq.inverse() * kf.pose_cw)
+}
+
+/// Monocular: lengths in the matched map per length in the query's map, the median ratio of
+/// the distances of the refined inliers' points from the camera in the two maps.
+fn map_scale(
+    q: &Query,
+    own: &Map,
+    own_points: &[Option<PointId>],
+    map: &Map,
+    pose: &Isometry3<f64>,
+    matches: &[Option<PointId>],
+) -> Option<f64> {
+    let mut ratios: Vec<f64> = matches
+        .iter()
+        .enumerate()
+        .filter_map(|(qi, pm)| {
+            let xm = map.points.get(&(*pm)?)?;
+            let xq = own.points.get(&own_points.get(qi).copied().flatten()?)?;
+            let dm = (pose * Point3::from(xm.position)).coords.norm();
+            let dq = (q.pose * Point3::from(xq.position)).coords.norm();
+            (dq > 0.0 && dm > 0.0).then(|| dm / dq)
+        })
+        .collect();
+    if ratios.len() < SCALE_MIN_PAIRS {
+        return None;
+    }
+    ratios.sort_by(f64::total_cmp);
+    Some(ratios[ratios.len() / 2])
 }
 
 /// Initial pose of the query in the matched map: 3-D–3-D RANSAC when the query has depth
@@ -430,8 +545,9 @@ pub fn pose_information(
 pub struct Accepted {
     pub query_map: u32,
     pub match_map: u32,
-    /// Query-map world → matched-map world (for a loop inside one map: the drift correction).
-    pub alignment: Isometry3<f64>,
+    /// Query-map world → matched-map world (for a loop inside one map: the drift correction;
+    /// a similarity in monocular mode).
+    pub alignment: Sim3,
     /// The agreeing candidates, oldest first.
     pub members: Vec<Valid>,
 }
@@ -441,8 +557,11 @@ pub struct Accepted {
 pub struct Pool {
     recent: VecDeque<Valid>,
     /// Alignments of pools that were rolled back, per (query map, match map).
-    refused: Vec<(u32, u32, Isometry3<f64>)>,
+    refused: Vec<(u32, u32, Sim3)>,
 }
+
+/// Largest scale difference (log) between the alignments of one pool's candidates (monocular).
+const POOL_MAX_LOG_SCALE: f64 = 0.1;
 
 /// Tolerances of "the same alignment".
 pub struct Agreement {
@@ -458,10 +577,14 @@ impl Agreement {
         }
     }
 
-    pub fn agree(&self, a: &Isometry3<f64>, b: &Isometry3<f64>) -> bool {
-        let d = a.inverse() * b;
-        d.translation.vector.norm() <= self.max_translation_m
-            && d.rotation.angle().to_degrees() <= self.max_rotation_deg
+    /// Same rotation and translation within the tolerances, and (monocular) the same scale
+    /// within [`POOL_MAX_LOG_SCALE`].
+    pub fn agree(&self, a: &Sim3, b: &Sim3) -> bool {
+        let d = a.inverse().compose(b);
+        let angle = nalgebra::UnitQuaternion::from_rotation_matrix(&d.rotation).angle();
+        d.translation.norm() <= self.max_translation_m
+            && angle.to_degrees() <= self.max_rotation_deg
+            && d.scale.ln().abs() <= POOL_MAX_LOG_SCALE
     }
 }
 
@@ -484,7 +607,7 @@ impl Pool {
     }
 
     /// Remembers a rolled-back alignment so that the same wrong closure is not accepted again.
-    pub fn refuse(&mut self, query_map: u32, match_map: u32, alignment: Isometry3<f64>) {
+    pub fn refuse(&mut self, query_map: u32, match_map: u32, alignment: Sim3) {
         self.refused.push((query_map, match_map, alignment));
     }
 
@@ -570,6 +693,7 @@ mod tests {
             reference_kf: None,
             query_pose: Isometry3::identity(),
             pose_in_match: alignment.inverse(),
+            scale: 1.0,
             matches: vec![],
             n_inliers: 50,
             information: Matrix6::identity(),
@@ -603,7 +727,7 @@ mod tests {
             .offer(valid(13, a), 30, 3, &agreement())
             .expect("three agree");
         assert_eq!(acc.members.len(), 3);
-        assert!(agreement().agree(&acc.alignment, &a));
+        assert!(agreement().agree(&acc.alignment, &Sim3::from_isometry(&a)));
         assert_eq!(pool.pending(), 0);
     }
 
@@ -616,11 +740,35 @@ mod tests {
             pool.offer(valid(20, a), 5, 2, &agreement()).is_none(),
             "frame 0 expired"
         );
-        pool.refuse(1, 0, a);
+        pool.refuse(1, 0, Sim3::from_isometry(&a));
         let near = Isometry3::new(Vector3::new(1.05, 0.0, 0.0), Vector3::zeros());
         assert!(pool.is_refused(&valid(21, near), &agreement()));
         let far = Isometry3::new(Vector3::new(3.0, 0.0, 0.0), Vector3::zeros());
         assert!(!pool.is_refused(&valid(22, far), &agreement()));
+    }
+
+    #[test]
+    fn monocular_alignment_carries_the_scale_and_pools_agree_on_it() {
+        // The query camera sees a point at distance 1 in its map; the matched map measures 2.
+        let query_pose = Isometry3::new(Vector3::new(0.3, -0.1, 0.2), Vector3::new(0.1, 0.2, 0.0));
+        let pose_in_match =
+            Isometry3::new(Vector3::new(1.0, 0.5, 0.0), Vector3::new(0.0, 0.3, 0.1));
+        let mut v = valid(5, Isometry3::identity());
+        v.query_pose = query_pose;
+        v.pose_in_match = pose_in_match;
+        v.scale = 2.0;
+        let a = v.alignment();
+        assert!((a.scale - 2.0).abs() < 1e-12);
+        // A query-map point maps to where the matched map's camera sees it, twice as far.
+        let x = Vector3::new(0.2, 0.1, 1.5);
+        let in_query_cam = (query_pose * Point3::from(x)).coords;
+        let in_match_cam = (pose_in_match * Point3::from(a.transform_point(&x))).coords;
+        assert!((in_match_cam - 2.0 * in_query_cam).norm() < 1e-9);
+        let mut w = v.clone();
+        w.scale = 2.1;
+        assert!(agreement().agree(&a, &w.alignment()), "5 % apart");
+        w.scale = 2.5;
+        assert!(!agreement().agree(&a, &w.alignment()), "25 % apart");
     }
 
     #[test]
@@ -688,5 +836,142 @@ mod tests {
         // Unrelated descriptors (about 128 bits away) give nothing.
         let other: Vec<[u8; 32]> = (0..n).map(|_| rng.random()).collect();
         assert!(search_keyframe_points(&view(2, other), &map.keyframes[&kf], &map).is_empty());
+    }
+
+    /// A monocular view of world points `xs` from `pose_cw` (depth suppressed), one random
+    /// descriptor per point; points outside the image keep a keypoint at the centre (they are
+    /// not used).
+    fn mono_view(
+        frame: usize,
+        geo: &ImageGeometry,
+        pose_cw: &Isometry3<f64>,
+        xs: &[Vector3<f64>],
+        descriptors: &[[u8; 32]],
+    ) -> Measurement {
+        use crate::preprocess::{FeatureGrid, Keypoint};
+        let keypoints: Vec<Keypoint> = xs
+            .iter()
+            .map(|x| {
+                let pc = pose_cw * Point3::from(*x);
+                let uv = geo
+                    .project_in_image(&pc.coords)
+                    .unwrap_or(nalgebra::Vector2::new(320.0, 240.0));
+                Keypoint {
+                    raw: uv,
+                    un: uv,
+                    octave: 0,
+                    angle: 30.0,
+                    response: 1.0,
+                }
+            })
+            .collect();
+        Measurement {
+            frame,
+            t: frame as f64,
+            grid: FeatureGrid::new(640, 480, &keypoints),
+            depth: vec![0.0; keypoints.len()],
+            descriptors: descriptors.to_vec(),
+            keypoints,
+        }
+    }
+
+    #[test]
+    fn monocular_validation_measures_the_scale_between_two_maps() {
+        use crate::optim::Intrinsics;
+        use rand::{Rng, SeedableRng};
+        let geo = ImageGeometry::new(Intrinsics::TUM_FREIBURG1, 640, 480, 1.2, 8);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        let n = 150;
+        let xs: Vec<Vector3<f64>> = (0..n)
+            .map(|_| {
+                Vector3::new(
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(-0.8..0.8),
+                    rng.random_range(2.0..4.0),
+                )
+            })
+            .collect();
+        let descriptors: Vec<[u8; 32]> = (0..n).map(|_| rng.random()).collect();
+        // The matched map: a keyframe at its origin observing every point.
+        let mut matched = Map::new(0);
+        let kf_pose = Isometry3::identity();
+        let kf = matched.add_keyframe(&mono_view(0, &geo, &kf_pose, &xs, &descriptors), kf_pose);
+        let pm: Vec<PointId> = (0..n)
+            .map(|i| matched.add_point(kf, i, xs[i], 1.2, 8))
+            .collect();
+        // The query's map: the same place at half the scale, in another world frame
+        // (`a`: query world → matched world, scale 2).
+        let a = Sim3 {
+            rotation: nalgebra::Rotation3::new(Vector3::new(0.1, -0.4, 0.2)),
+            translation: Vector3::new(1.0, -2.0, 0.5),
+            scale: 2.0,
+        };
+        let in_query = |x: &Vector3<f64>| a.inverse().transform_point(x);
+        // The query camera, 20 cm and a few degrees from the keyframe.
+        let cam_in_match =
+            Isometry3::new(Vector3::new(0.2, 0.05, -0.1), Vector3::new(0.02, 0.08, 0.0));
+        let q_m = mono_view(9, &geo, &cam_in_match, &xs, &descriptors);
+        // Its pose in its own map: `S(1/2) ∘ T ∘ a` is rigid.
+        let half = Sim3 {
+            scale: 0.5,
+            ..Sim3::identity()
+        };
+        let query_pose = half
+            .compose(&Sim3::from_isometry(&cam_in_match))
+            .compose(&a)
+            .to_isometry();
+        let mut own = Map::new(1);
+        let qkf = own.add_keyframe(&q_m, query_pose);
+        let own_points: Vec<Option<PointId>> = (0..n)
+            .map(|i| Some(own.add_point(qkf, i, in_query(&xs[i]), 1.2, 8)))
+            .collect();
+        let c = Candidate {
+            image: kf as u64,
+            score: 1.0,
+            matches: (0..n as u32).map(|i| (i, i)).collect(),
+        };
+        let q = Query {
+            m: &q_m,
+            map: 1,
+            pose: query_pose,
+            kf: None,
+            reference_kf: Some(qkf),
+            own: Some((&own, &own_points)),
+        };
+        let cfg = LoopClosingConfig::default();
+        // The Sim3 RANSAC alone already places the query camera in the matched map.
+        let pairs: Vec<(usize, PointId)> = (0..n).map(|i| (i, pm[i])).collect();
+        let initial = sim3_pose(
+            &cfg,
+            &geo,
+            &q,
+            &own,
+            &own_points,
+            &matched,
+            &matched.keyframes[&kf],
+            &pairs,
+        )
+        .expect("Sim3 RANSAC");
+        let d = initial.inverse() * cam_in_match;
+        assert!(
+            d.translation.vector.norm() < 1e-6 && d.rotation.angle() < 1e-6,
+            "{d}"
+        );
+        let Verdict::Valid(v) = validate(&cfg, &geo, &q, &matched, &c) else {
+            panic!("the similarity is not found");
+        };
+        assert!((v.scale - 2.0).abs() < 1e-3, "scale {}", v.scale);
+        let found = v.alignment();
+        for x in xs.iter().take(10) {
+            let y = found.transform_point(&in_query(x));
+            assert!((y - x).norm() < 1e-3, "{y} vs {x}");
+        }
+        assert!(v.matches.iter().flatten().all(|p| pm.contains(p)));
+        // Without the query's map points there is no scale: a rigid alignment.
+        let rigid = Query { own: None, ..q };
+        let Verdict::Valid(v) = validate(&cfg, &geo, &rigid, &matched, &c) else {
+            panic!("PnP finds the pose");
+        };
+        assert_eq!(v.scale, 1.0);
     }
 }

@@ -485,8 +485,10 @@ fn cmd_eval(mut a: EvalArgs) -> Result<()> {
         Some(run) => {
             let closures = homing::output::read_closures(&run.join("closures.csv"))?;
             let maps = homing::output::read_state_maps(&run.join("states.csv"))?;
-            let check = eval::run::check_closures(&closures, &gt, a.max_dt);
             let (per_map, largest) = eval::run::per_map_ate(&gt, &est, &maps, a.align, a.max_dt);
+            let mono = (a.align == Alignment::Sim3)
+                .then(|| eval::run::MonoScales::from_maps(&per_map, largest));
+            let check = eval::run::check_closures(&closures, &gt, a.max_dt, mono.as_ref());
             Some((check, per_map, largest))
         }
         None => None,

@@ -46,6 +46,11 @@ pub struct Keyframe {
     pub points: Vec<Option<PointId>>,
     /// Covisible keyframe → number of shared map points.
     pub covisibility: BTreeMap<KfId, u32>,
+    /// How much lengths in this keyframe's camera frame have been rescaled since it was made
+    /// (monocular: Sim3 merges and pose graphs change a map's scale locally; 1 with depth).
+    /// Frame poses and closure measurements kept relative to the keyframe are stored in its
+    /// creation units and rescaled by this on use.
+    pub units: f64,
 }
 
 impl Keyframe {
@@ -62,6 +67,7 @@ impl Keyframe {
             grid: m.grid.clone(),
             points: vec![None; m.keypoints.len()],
             covisibility: BTreeMap::new(),
+            units: 1.0,
         }
     }
 

@@ -301,9 +301,11 @@ fn evaluate(run: &RunData) -> Option<std::result::Result<Evaluation, String>> {
     };
     let ate = eval::ate(&assoc, align);
     let rpe = eval::rpe(&assoc, 1.0, RpeUnit::Seconds, false).map_err(|e| e.to_string());
-    let closures = eval::run::check_closures(&run.closures, gt, MAX_DT);
     let (per_map, largest) =
         eval::run::per_map_ate(gt, &run.trajectory, &run.pose_maps, align, MAX_DT);
+    let mono =
+        (align == Alignment::Sim3).then(|| eval::run::MonoScales::from_maps(&per_map, largest));
+    let closures = eval::run::check_closures(&run.closures, gt, MAX_DT, mono.as_ref());
     Some(Ok(Evaluation {
         align,
         assoc,
@@ -1351,11 +1353,14 @@ pub fn render_html(run: &RunData) -> Result<String> {
                 ""
             }
         );
+        let mono_scales = ev
+            .filter(|e| e.align == Alignment::Sim3)
+            .map(|e| eval::run::MonoScales::from_maps(&e.per_map, e.largest));
         for c in &run.closures {
             let wrong = match (&run.gt, ev) {
                 (Some((_, gt)), Some(_)) => format!(
                     "<td>{}</td>",
-                    match eval::run::closure_is_wrong(c, gt, MAX_DT) {
+                    match eval::run::closure_is_wrong(c, gt, MAX_DT, mono_scales.as_ref()) {
                         Some(true) => "<b>yes</b>",
                         Some(false) => "no",
                         None => "n/a",

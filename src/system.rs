@@ -312,21 +312,30 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
     }
     let state = fin.state;
     // Resolve every frame's pose through its keyframe in the final atlas.
-    let kf_map: std::collections::BTreeMap<KfId, (u32, Isometry3<f64>)> = machine
+    // Relative translations are in the keyframe's creation units (see `Keyframe::units`).
+    let kf_map: std::collections::BTreeMap<KfId, (u32, Isometry3<f64>, f64)> = machine
         .atlas
         .maps
         .values()
-        .flat_map(|m| m.keyframes.values().map(move |k| (k.id, (m.id, k.pose_cw))))
+        .flat_map(|m| {
+            m.keyframes
+                .values()
+                .map(move |k| (k.id, (m.id, k.pose_cw, k.units)))
+        })
         .collect();
     let mut frame_map: std::collections::BTreeMap<usize, u32> = std::collections::BTreeMap::new();
     let mut trajectory: Vec<StampedPose> = Vec::with_capacity(relative.len());
     let mut pose_maps: Vec<(f64, u32)> = Vec::with_capacity(relative.len());
     let mut posed: Vec<crate::mcap_log::PosedFrame> = Vec::new();
     for (frame, t, kf, rel) in &relative {
-        let Some((map, kf_pose)) = kf_map.get(kf) else {
+        let Some((map, kf_pose, units)) = kf_map.get(kf) else {
             poses_discarded += 1;
             continue;
         };
+        let mut rel = *rel;
+        if *units != 1.0 {
+            rel.translation.vector *= *units;
+        }
         frame_map.insert(*frame, *map);
         pose_maps.push((*t, *map));
         if opts.mcap_log {
@@ -521,8 +530,9 @@ fn evaluate(
     };
     let ate = eval::ate(&assoc, align);
     let rpe = eval::rpe(&assoc, 1.0, RpeUnit::Seconds, false).ok();
-    let closures = eval::run::check_closures(closures, &gt, 0.02);
     let (maps, largest) = eval::run::per_map_ate(&gt, est, pose_maps, align, 0.02);
+    let mono = (align == Alignment::Sim3).then(|| eval::run::MonoScales::from_maps(&maps, largest));
+    let closures = eval::run::check_closures(closures, &gt, 0.02, mono.as_ref());
     let largest_map = largest.and_then(|l| maps.iter().find(|m| m.map == l));
     // Coverage of the largest map alone: frames posed in disconnected maps do not count, so a
     // controller that starts a new map on every loss (PRoSLAM) is not credited for poses it

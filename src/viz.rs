@@ -274,8 +274,10 @@ mod imp {
                     .maps
                     .get(map)
                     .and_then(|mp| mp.keyframes.get(kf))
-                    .map(|k| k.pose_cw);
-                if let Some(kf_pose) = kf_pose {
+                    .map(|k| (k.pose_cw, k.units));
+                if let Some((kf_pose, units)) = kf_pose {
+                    let mut rel = *rel;
+                    rel.translation.vector *= units;
                     let pose_wc = (rel * kf_pose).inverse();
                     self.log("world/camera", &transform(&pose_wc))?;
                     let traj = self.trajectories.entry(*map).or_default();

@@ -18,8 +18,9 @@ use nalgebra::Isometry3;
 use std::collections::BTreeSet;
 
 /// A tracked frame: its pose relative to its reference keyframe (`T_cw · T_kw⁻¹`, taken when
-/// the frame was tracked, so that it follows the keyframe through every later optimisation),
-/// the map and the keyframe.
+/// the frame was tracked, so that it follows the keyframe through every later optimisation;
+/// translation in the keyframe's creation units, see `Keyframe::units`), the map and the
+/// keyframe.
 pub type Pose = (Isometry3<f64>, MapId, KfId);
 
 /// Candidates validated per query (best scores first): geometry costs a few milliseconds each.
@@ -208,11 +209,12 @@ impl StateMachine {
             .or(self.tracker.reference_kf)
             .or_else(|| map.keyframes.keys().next_back().copied())
             .expect("a map has a keyframe");
-        (
-            track.pose_cw * map.keyframes[&kf].pose_cw.inverse(),
-            cur,
-            kf,
-        )
+        let k = &map.keyframes[&kf];
+        let mut rel = track.pose_cw * k.pose_cw.inverse();
+        if k.units != 1.0 {
+            rel.translation.vector /= k.units;
+        }
+        (rel, cur, kf)
     }
 
     /// Core: region Mapping (tracker, map merger, loop closing on the current map) and region
@@ -355,6 +357,9 @@ impl StateMachine {
                 pose: track.pose_cw,
                 kf: None,
                 reference_kf: track.reference_kf.or(self.tracker.reference_kf),
+                own: self
+                    .mono
+                    .then(|| (&self.atlas.maps[&cur], track.matches.as_slice())),
             };
             let verdict = loop_validator::validate(
                 &self.cfg.loop_closing,
@@ -398,12 +403,16 @@ impl StateMachine {
             let Some(match_map) = self.atlas.map_of_keyframe(c.image as KfId) else {
                 continue;
             };
+            let own = &self.atlas.maps[&cur];
             let q = Query {
                 m,
                 map: cur,
                 pose: query_pose,
                 kf: Some(kf),
                 reference_kf: Some(kf),
+                own: self
+                    .mono
+                    .then(|| (own, own.keyframes[&kf].points.as_slice())),
             };
             let verdict = loop_validator::validate(
                 &self.cfg.loop_closing,
@@ -463,6 +472,9 @@ impl StateMachine {
                 pose: track.pose_cw,
                 kf: None,
                 reference_kf: track.reference_kf.or(self.tracker.reference_kf),
+                own: self
+                    .mono
+                    .then(|| (&self.atlas.maps[&cur], track.matches.as_slice())),
             };
             let verdict = loop_validator::validate(
                 &self.cfg.loop_closing,
@@ -541,8 +553,12 @@ impl StateMachine {
                     ) else {
                         return false;
                     };
-                    let per_kf =
-                        global_optimizer::merge_depth_check(&self.geo, into, from, &acc.alignment);
+                    let per_kf = global_optimizer::merge_depth_check(
+                        &self.geo,
+                        into,
+                        from,
+                        &acc.alignment.to_isometry(),
+                    );
                     tracing::debug!(
                         "frame {}: merge depth check map {} -> {} (keyframe, judged, seen through): {:?}",
                         m.frame,
@@ -683,27 +699,38 @@ impl StateMachine {
             let Some(r_kf) = r.and_then(|r| q_map.keyframes.get(&r)) else {
                 continue;
             };
-            let t_rq = r_kf.pose_cw * v.query_pose.inverse();
-            let r_in_match = t_rq * v.pose_in_match;
-            let rel = relative(&m_kf.pose_cw, &r_in_match);
-            edges.push(ClosureEdge {
-                pool: 0,
-                query: r_kf.id,
-                matched: v.matched,
-                relative: rel,
-                information: relative_information(&rel, &v.information),
-            });
+            // Reference keyframe → matched keyframe: the query camera's offset from its
+            // reference keyframe, rescaled to the matched map's lengths (monocular), then the
+            // query camera in the matched map. After a merge the reference keyframe's frame is
+            // in the matched map's lengths already; within one map the scale is measured.
+            let mut t_qr = v.query_pose * r_kf.pose_cw.inverse();
+            t_qr.translation.vector *= v.scale;
+            let rel = m_kf.pose_cw * v.pose_in_match.inverse() * t_qr;
+            let scale = if into == from { v.scale } else { 1.0 };
+            let units_after_merge = if into == from { 1.0 } else { v.scale };
+            let z = Sim3 {
+                scale,
+                ..Sim3::from_isometry(&rel)
+            };
+            edges.push(ClosureEdge::new(
+                0,
+                r_kf.id,
+                v.matched,
+                &z,
+                (m_kf.units, r_kf.units * units_after_merge),
+                relative_information(&rel, &v.information),
+            ));
         }
         let kind = if into == from {
             PoolKind::Loop {
                 map: into,
-                correction: (&Sim3::from_isometry(&acc.alignment)).into(),
+                correction: (&acc.alignment).into(),
             }
         } else {
             PoolKind::Merge {
                 into,
                 from,
-                alignment: (&Sim3::from_isometry(&acc.alignment)).into(),
+                alignment: (&acc.alignment).into(),
             }
         };
         let pool = self.atlas.begin_pool(kind, m.frame, m.t);
@@ -719,10 +746,7 @@ impl StateMachine {
         self.atlas.add_edges(pool, edges);
         self.pool_frames.push((pool, m.frame));
         if into != from {
-            if let Err(e) = self
-                .atlas
-                .merge(into, from, &Sim3::from_isometry(&acc.alignment))
-            {
+            if let Err(e) = self.atlas.merge(into, from, &acc.alignment) {
                 tracing::warn!("merge failed: {e}");
                 return;
             }
@@ -785,6 +809,7 @@ impl StateMachine {
         self.reloc_pool.clear();
         self.loop_pool.clear();
         self.expectation_failures = 0;
+        self.localized_peak_inliers = 0;
         self.unknown_view_frames = 0;
         self.cond.left_known_area = false;
     }
@@ -926,8 +951,16 @@ impl StateMachine {
         // fails. Where a keyframe looks from, a new keyframe would duplicate it, so with depth
         // Localized holds as long as the tracker does (the depth check guards the map).
         // Without depth the check is appearance only, which cannot tell a blurred frame from a
-        // wrong map: weak tracking leaves before that check could condemn a correct map.
-        let weak = track.n_inliers < c.min_localized_inliers as usize && !(known_view && by_depth);
+        // wrong map: weak tracking — also half the inliers Localized had, as when motion blur
+        // sets in (fr1_xyz near frame 245) — leaves before that check could condemn a correct
+        // map.
+        self.localized_peak_inliers = self.localized_peak_inliers.max(track.n_inliers);
+        let floor = if !self.mono {
+            c.min_localized_inliers as usize
+        } else {
+            (c.min_localized_inliers as usize).max(self.localized_peak_inliers / 2)
+        };
+        let weak = track.n_inliers < floor && !(known_view && by_depth);
         self.cond.left_known_area =
             self.flags.consistent_map && (weak || self.unknown_view_frames >= c.left_after_frames);
         Some(pose)
@@ -1104,12 +1137,12 @@ impl StateMachine {
                     alignment,
                 } => {
                     let s: Sim3 = alignment.into();
-                    self.reloc_pool.refuse(*from, *into, s.to_isometry());
-                    self.loop_pool.refuse(*from, *into, s.to_isometry());
+                    self.reloc_pool.refuse(*from, *into, s);
+                    self.loop_pool.refuse(*from, *into, s);
                 }
                 PoolKind::Loop { map, correction } => {
                     let s: Sim3 = correction.into();
-                    self.loop_pool.refuse(*map, *map, s.to_isometry());
+                    self.loop_pool.refuse(*map, *map, s);
                 }
             }
             self.mark_aliased(u.pool);
@@ -1158,6 +1191,8 @@ impl StateMachine {
                 pose: Isometry3::identity(),
                 kf: None,
                 reference_kf: None,
+                // Relocalization in the same map: a pose, no scale to measure.
+                own: None,
             };
             let verdict = loop_validator::validate(
                 &self.cfg.loop_closing,

@@ -91,6 +91,8 @@ pub struct StateMachine {
     /// Consecutive frames in Localized whose expectation failed, and whose view the map did
     /// not cover.
     expectation_failures: u32,
+    /// Most inliers of a frame since Localized was entered (see `track_localized`).
+    localized_peak_inliers: usize,
     unknown_view_frames: u32,
     /// Why the map was found inconsistent: pools the global optimizer flagged (empty: the
     /// expectation check failed).
@@ -152,6 +154,7 @@ impl StateMachine {
             last_tracked_t: None,
             accepted: None,
             expectation_failures: 0,
+            localized_peak_inliers: 0,
             unknown_view_frames: 0,
             suspects: Vec::new(),
             contradicting_keyframes: 0,

@@ -5,7 +5,9 @@
 //! query camera in the matched keyframe's camera) disagrees with the ground truth's by more than
 //! 0.3 m or 10° (the project's convention). A candidate the validator rejected before it had a
 //! pose is judged by place instead: wrong when the two cameras were more than 0.3 m apart or
-//! looked more than 30° apart (it proposed another place).
+//! looked more than 30° apart (it proposed another place). A monocular map has no metric
+//! scale: its claimed translations are converted to metres with the scale of that map's own
+//! Sim3 alignment to the ground truth ([`MonoScales`]).
 
 use super::{Alignment, associate_and_align, ate};
 use crate::io::tum::StampedPose;
@@ -53,13 +55,27 @@ fn gt_at(gt: &[StampedPose], t: f64, max_dt: f64) -> Option<Isometry3<f64>> {
 }
 
 /// Whether one candidate is wrong; `None` without ground truth at both ends.
-pub fn closure_is_wrong(row: &ClosureRow, gt: &[StampedPose], max_dt: f64) -> Option<bool> {
+pub fn closure_is_wrong(
+    row: &ClosureRow,
+    gt: &[StampedPose],
+    max_dt: f64,
+    mono: Option<&MonoScales>,
+) -> Option<bool> {
     let q = gt_at(gt, row.t_query, max_dt)?;
     let m = gt_at(gt, row.t_match, max_dt)?;
     // World-to-camera relative of the truth: T_m,w · T_q,w⁻¹ = G_m⁻¹ · G_q.
     let truth = m.inverse() * q;
     Some(match &row.relative {
         Some(claimed) => {
+            let mut claimed = *claimed;
+            if let Some(s) = mono {
+                // No scale known for the map: judge the rotation and direction only.
+                let metres = s.of(row.map_match).unwrap_or(0.0);
+                claimed.translation.vector *= metres;
+                if metres == 0.0 {
+                    claimed.translation.vector = truth.translation.vector;
+                }
+            }
             let d = claimed.inverse() * truth;
             d.translation.vector.norm() > WRONG_TRANSLATION_M
                 || d.rotation.angle().to_degrees() > WRONG_ROTATION_DEG
@@ -71,10 +87,39 @@ pub fn closure_is_wrong(row: &ClosureRow, gt: &[StampedPose], max_dt: f64) -> Op
     })
 }
 
-pub fn check_closures(rows: &[ClosureRow], gt: &[StampedPose], max_dt: f64) -> ClosureCheck {
+/// Metres per map unit of monocular maps, for judging their closures: each map's own Sim3
+/// alignment scale; for a map gone by the end (merged, rolled back) the largest map's.
+#[derive(Debug, Clone, Default)]
+pub struct MonoScales {
+    per_map: BTreeMap<u32, f64>,
+    fallback: Option<f64>,
+}
+
+impl MonoScales {
+    pub fn from_maps(maps: &[MapAte], largest: Option<u32>) -> Self {
+        let per_map: BTreeMap<u32, f64> = maps
+            .iter()
+            .filter_map(|m| m.scale.map(|s| (m.map, s)))
+            .collect();
+        let fallback = largest.and_then(|l| per_map.get(&l).copied());
+        Self { per_map, fallback }
+    }
+
+    pub fn of(&self, map: u32) -> Option<f64> {
+        self.per_map.get(&map).copied().or(self.fallback)
+    }
+}
+
+/// `mono`: the run is monocular (see [`MonoScales`]).
+pub fn check_closures(
+    rows: &[ClosureRow],
+    gt: &[StampedPose],
+    max_dt: f64,
+    mono: Option<&MonoScales>,
+) -> ClosureCheck {
     let mut c = ClosureCheck::default();
     for r in rows {
-        let Some(wrong) = closure_is_wrong(r, gt, max_dt) else {
+        let Some(wrong) = closure_is_wrong(r, gt, max_dt, mono) else {
             continue;
         };
         let w = usize::from(wrong);
@@ -111,6 +156,8 @@ pub struct MapAte {
     pub map: u32,
     pub poses: usize,
     pub ate_rmse_m: Option<f64>,
+    /// Scale of the map's alignment to the ground truth (metres per map unit; 1 for SE3).
+    pub scale: Option<f64>,
 }
 
 /// ATE per map (each map aligned on its own: the maps are disconnected frames) and the id of
@@ -136,14 +183,14 @@ pub fn per_map_ate(
     }
     let mut out = Vec::new();
     for (m, poses) in &by_map {
-        let rmse = (poses.len() >= 3)
+        let aligned = (poses.len() >= 3)
             .then(|| associate_and_align(gt, poses, align, max_dt).ok())
-            .flatten()
-            .map(|a| ate(&a, align).stats.rmse);
+            .flatten();
         out.push(MapAte {
             map: *m,
             poses: poses.len(),
-            ate_rmse_m: rmse,
+            ate_rmse_m: aligned.as_ref().map(|a| ate(a, align).stats.rmse),
+            scale: aligned.as_ref().map(|a| a.alignment.scale),
         });
     }
     let largest = out
