@@ -580,11 +580,12 @@ impl StateMachine {
                     }
                 }
                 tracing::info!(
-                    "frame {}: {kind} pool accepted: map {} -> map {} from {} candidates",
+                    "frame {}: {kind} pool accepted: map {} -> map {} from {} candidates (scale {:.3})",
                     m.frame,
                     acc.query_map,
                     acc.match_map,
-                    acc.members.len()
+                    acc.members.len(),
+                    acc.alignment.scale
                 );
                 self.accepted = Some(acc);
                 self.flags.able_to_localize = true;
@@ -810,6 +811,7 @@ impl StateMachine {
         self.loop_pool.clear();
         self.expectation_failures = 0;
         self.localized_peak_inliers = 0;
+        self.localized_by_merge = into != from;
         self.unknown_view_frames = 0;
         self.cond.left_known_area = false;
     }
@@ -951,11 +953,13 @@ impl StateMachine {
         // fails. Where a keyframe looks from, a new keyframe would duplicate it, so with depth
         // Localized holds as long as the tracker does (the depth check guards the map).
         // Without depth the check is appearance only, which cannot tell a blurred frame from a
-        // wrong map: weak tracking — also half the inliers Localized had, as when motion blur
-        // sets in (fr1_xyz near frame 245) — leaves before that check could condemn a correct
-        // map.
+        // wrong map: weak tracking leaves before that check could condemn a correct map. After
+        // a loop inside one map (which the pose graph's consistency check has vetted), so does
+        // losing half the inliers Localized had, as when motion blur sets in (fr1_xyz near
+        // frame 245); after a merge of two maps the appearance check is the only guard left,
+        // and Localized stays for it (the look-alike doors of the case study).
         self.localized_peak_inliers = self.localized_peak_inliers.max(track.n_inliers);
-        let floor = if !self.mono {
+        let floor = if !self.mono || self.localized_by_merge {
             c.min_localized_inliers as usize
         } else {
             (c.min_localized_inliers as usize).max(self.localized_peak_inliers / 2)
