@@ -778,29 +778,41 @@ mod tests {
         assert!((r - info).norm() < 1e-12);
     }
 
-    /// A view of `n` keypoints with the given descriptors (all with depth 2 m).
-    fn view(frame: usize, descriptors: Vec<[u8; 32]>) -> Measurement {
+    /// A measurement of keypoints at `uvs` (level 0, angle 30°) with the given descriptors,
+    /// all at depth `depth` (0: monocular).
+    fn measurement_at(
+        frame: usize,
+        uvs: Vec<nalgebra::Vector2<f64>>,
+        depth: f32,
+        descriptors: Vec<[u8; 32]>,
+    ) -> Measurement {
         use crate::preprocess::{FeatureGrid, Keypoint};
-        let keypoints: Vec<Keypoint> = (0..descriptors.len())
-            .map(|i| {
-                let uv = nalgebra::Vector2::new(20.0 + 6.0 * i as f64, 240.0);
-                Keypoint {
-                    raw: uv,
-                    un: uv,
-                    octave: 0,
-                    angle: 30.0,
-                    response: 1.0,
-                }
+        let keypoints: Vec<Keypoint> = uvs
+            .into_iter()
+            .map(|uv| Keypoint {
+                raw: uv,
+                un: uv,
+                octave: 0,
+                angle: 30.0,
+                response: 1.0,
             })
             .collect();
         Measurement {
             frame,
             t: frame as f64,
             grid: FeatureGrid::new(640, 480, &keypoints),
-            depth: vec![2.0; keypoints.len()],
+            depth: vec![depth; keypoints.len()],
             descriptors,
             keypoints,
         }
+    }
+
+    /// A view of `n` keypoints with the given descriptors (all with depth 2 m).
+    fn view(frame: usize, descriptors: Vec<[u8; 32]>) -> Measurement {
+        let uvs = (0..descriptors.len())
+            .map(|i| nalgebra::Vector2::new(20.0 + 6.0 * i as f64, 240.0))
+            .collect();
+        measurement_at(frame, uvs, 2.0, descriptors)
     }
 
     #[test]
@@ -848,31 +860,15 @@ mod tests {
         xs: &[Vector3<f64>],
         descriptors: &[[u8; 32]],
     ) -> Measurement {
-        use crate::preprocess::{FeatureGrid, Keypoint};
-        let keypoints: Vec<Keypoint> = xs
+        let uvs = xs
             .iter()
             .map(|x| {
                 let pc = pose_cw * Point3::from(*x);
-                let uv = geo
-                    .project_in_image(&pc.coords)
-                    .unwrap_or(nalgebra::Vector2::new(320.0, 240.0));
-                Keypoint {
-                    raw: uv,
-                    un: uv,
-                    octave: 0,
-                    angle: 30.0,
-                    response: 1.0,
-                }
+                geo.project_in_image(&pc.coords)
+                    .unwrap_or(nalgebra::Vector2::new(320.0, 240.0))
             })
             .collect();
-        Measurement {
-            frame,
-            t: frame as f64,
-            grid: FeatureGrid::new(640, 480, &keypoints),
-            depth: vec![0.0; keypoints.len()],
-            descriptors: descriptors.to_vec(),
-            keypoints,
-        }
+        measurement_at(frame, uvs, 0.0, descriptors.to_vec())
     }
 
     #[test]

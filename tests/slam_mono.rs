@@ -50,3 +50,59 @@ fn desk_small_mono_initializes_tracks_and_is_accurate() {
     let ate = ev["ate"]["stats"]["rmse"].as_f64().unwrap();
     assert!(ate < 0.04, "Sim3 ATE {ate} m");
 }
+
+/// Kidnapping in mono: frames 60–80 of the small `desk` are dropped, tracking is lost and a
+/// new map starts at its own scale (median depth 1 at its initialisation). Relocalizing into
+/// the first map must measure that scale (Sim3 validation) and merge with it: one map at the
+/// end, frames of both parts in one frame, and an accurate Sim3 trajectory over both.
+#[test]
+fn desk_small_mono_kidnapping_is_merged_back_in_sim3() {
+    use homing::atlas::{Atlas, AtlasCamera, PoolKind};
+    use homing::geometry::Sim3;
+    let tmp = tempfile::tempdir().unwrap();
+    let seq = tmp.path().join("desk");
+    common::synth_small("desk", &seq, None);
+    let atlas = tmp.path().join("atlas.bin");
+    let summary = run(&RunOptions {
+        sequence: seq,
+        out: tmp.path().join("run"),
+        eval: true,
+        save_map: Some(atlas.clone()),
+        perturb: PerturbationSpec {
+            mono: true,
+            drops: vec!["60:80".parse().unwrap()],
+            ..Default::default()
+        },
+        ..Default::default()
+    })
+    .unwrap();
+    let cam = &summary.camera;
+    let camera = AtlasCamera {
+        fx: cam.fx,
+        fy: cam.fy,
+        cx: cam.cx,
+        cy: cam.cy,
+        width: cam.width,
+        height: cam.height,
+    };
+    let loaded = Atlas::load(&atlas, &camera, true).unwrap();
+    let merges: Vec<Sim3> = loaded
+        .pools
+        .iter()
+        .filter(|p| !p.rolled_back)
+        .filter_map(|p| match &p.kind {
+            PoolKind::Merge { alignment, .. } => Some(alignment.into()),
+            PoolKind::Loop { .. } => None,
+        })
+        .collect();
+    assert_eq!(merges.len(), 1, "the new map was not merged back");
+    // The two maps' scales differ (each is median depth 1 at its own start): the merge must
+    // carry the measured ratio, not 1.
+    let s = merges[0].scale;
+    assert!(s.ln().abs() > 0.05, "merge scale {s}");
+    assert_eq!(summary.maps, 1);
+    let ev = summary.evaluation.unwrap();
+    assert_eq!(ev["closures"]["accepted_wrong"].as_u64(), Some(0));
+    let ate = ev["ate"]["stats"]["rmse"].as_f64().unwrap();
+    assert!(ate < 0.03, "Sim3 ATE over both parts {ate} m");
+}
