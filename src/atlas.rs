@@ -197,6 +197,19 @@ pub struct AtlasCamera {
     pub height: u32,
 }
 
+impl From<&crate::config::CameraConfig> for AtlasCamera {
+    fn from(c: &crate::config::CameraConfig) -> Self {
+        Self {
+            fx: c.fx,
+            fy: c.fy,
+            cx: c.cx,
+            cy: c.cy,
+            width: c.width,
+            height: c.height,
+        }
+    }
+}
+
 #[derive(Serialize, Deserialize)]
 struct AtlasFile {
     camera: AtlasCamera,
@@ -286,6 +299,14 @@ impl Atlas {
 
     pub fn n_keyframes(&self) -> usize {
         self.maps.values().map(|m| m.keyframes.len()).sum()
+    }
+
+    /// Every keyframe of every map.
+    pub fn keyframe_ids(&self) -> std::collections::BTreeSet<KfId> {
+        self.maps
+            .values()
+            .flat_map(|m| m.keyframes.keys().copied())
+            .collect()
     }
 
     /// Opens a transaction: snapshots the maps a new pool is about to touch and records it.

@@ -293,12 +293,7 @@ fn sim3_pose(
 ) -> Option<Isometry3<f64>> {
     let (mut p1, mut p2, mut uv1, mut uv2) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     for &(qi, pm) in pairs {
-        let Some(xq) = own_points
-            .get(qi)
-            .copied()
-            .flatten()
-            .and_then(|p| own.points.get(&p))
-        else {
+        let Some(xq) = own_point(own, own_points, qi) else {
             continue;
         };
         let xm = &map.points[&pm];
@@ -322,6 +317,15 @@ fn sim3_pose(
     Some(t_kq.inverse() * kf.pose_cw)
 }
 
+/// The query's own map point at keypoint `qi`, if it has one.
+fn own_point<'m>(
+    own: &'m Map,
+    own_points: &[Option<PointId>],
+    qi: usize,
+) -> Option<&'m crate::map::MapPoint> {
+    own.points.get(&own_points.get(qi).copied().flatten()?)
+}
+
 /// Monocular: lengths in the matched map per length in the query's map, the median ratio of
 /// the distances of the refined inliers' points from the camera in the two maps.
 fn map_scale(
@@ -337,7 +341,7 @@ fn map_scale(
         .enumerate()
         .filter_map(|(qi, pm)| {
             let xm = map.points.get(&(*pm)?)?;
-            let xq = own.points.get(&own_points.get(qi).copied().flatten()?)?;
+            let xq = own_point(own, own_points, qi)?;
             let dm = (pose * Point3::from(xm.position)).coords.norm();
             let dq = (q.pose * Point3::from(xq.position)).coords.norm();
             (dq > 0.0 && dm > 0.0).then(|| dm / dq)

@@ -132,14 +132,7 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
     if opts.threaded {
         machine.set_threaded();
     }
-    let atlas_camera = AtlasCamera {
-        fx: camera.fx,
-        fy: camera.fy,
-        cx: camera.cx,
-        cy: camera.cy,
-        width: camera.width,
-        height: camera.height,
-    };
+    let atlas_camera = AtlasCamera::from(&camera);
     // Init's entry: a saved atlas from an earlier session.
     if let Some(path) = &opts.load_map {
         let atlas = Atlas::load(path, &atlas_camera, spec.mono)?;

@@ -57,15 +57,7 @@ fn loop_is_closed_and_corrects_the_drift() {
         "no Mapping -> Localized transition"
     );
     // The saved atlas loads back, with consistent links.
-    let cam = &with.camera;
-    let camera = AtlasCamera {
-        fx: cam.fx,
-        fy: cam.fy,
-        cx: cam.cx,
-        cy: cam.cy,
-        width: cam.width,
-        height: cam.height,
-    };
+    let camera = AtlasCamera::from(&with.camera);
     let loaded = Atlas::load(&atlas, &camera, false).unwrap();
     assert_eq!(loaded.maps.len(), 1);
     assert_eq!(loaded.n_keyframes(), with.keyframes);

@@ -76,15 +76,7 @@ fn desk_small_mono_kidnapping_is_merged_back_in_sim3() {
         ..Default::default()
     })
     .unwrap();
-    let cam = &summary.camera;
-    let camera = AtlasCamera {
-        fx: cam.fx,
-        fy: cam.fy,
-        cx: cam.cx,
-        cy: cam.cy,
-        width: cam.width,
-        height: cam.height,
-    };
+    let camera = AtlasCamera::from(&summary.camera);
     let loaded = Atlas::load(&atlas, &camera, true).unwrap();
     let merges: Vec<Sim3> = loaded
         .pools

@@ -1119,12 +1119,7 @@ impl StateMachine {
         {
             return false;
         }
-        let before: BTreeSet<KfId> = self
-            .atlas
-            .maps
-            .values()
-            .flat_map(|m| m.keyframes.keys().copied())
-            .collect();
+        let before = self.atlas.keyframe_ids();
         let undone = match self.atlas.rollback(p) {
             Ok(u) => u,
             Err(e) => {
@@ -1165,12 +1160,7 @@ impl StateMachine {
                 u.discarded_keyframes
             );
         }
-        let after: BTreeSet<KfId> = self
-            .atlas
-            .maps
-            .values()
-            .flat_map(|m| m.keyframes.keys().copied())
-            .collect();
+        let after = self.atlas.keyframe_ids();
         for gone in before.difference(&after) {
             self.detector.remove(*gone as u64);
         }
