@@ -484,7 +484,7 @@ fn corridor_piece(
 /// walls and furniture, and its far wall is 1.5 m further: the robot maps the closet from
 /// door B, and the depth sensor sees through the closet's predicted far wall once it enters
 /// Room 2 believing it is behind B); Room 3 [14.6,18.6]x[6.2,10.2] with door D to Room 2 at
-/// y = 8.5. The corridor lights are off while the robot crosses x = 8.5..10.5.
+/// y = 8.5. The corridor lights are off while the robot crosses x = 8.3..9.5.
 pub fn case_study(seed: u64) -> Scenario {
     let m = |k: u64| mix(seed ^ k);
     let door = |side, center| Door {
@@ -688,8 +688,19 @@ pub fn case_study(seed: u64) -> Scenario {
     r.speed = 1.0;
     r.turn_rate = 100f64.to_radians();
     r.mark("0").wait(1.0);
-    r.mark("1").go(3.8, 1.0).go(3.8, 2.6).go(1.5, 2.6);
-    r.mark("2").turn_to(-60.0).go(2.5, 1.8).go(2.5, 3.0);
+    // Room 1, explored as a loop: east, north up the middle towards door A, a look back south
+    // (the view of anyone entering from the door), east, south, west, ending facing east.
+    r.mark("1")
+        .go(2.5, 1.0)
+        .go(2.5, 2.8)
+        .turn_to(-90.0)
+        .go(4.0, 2.8)
+        .go(4.0, 1.4)
+        .go(1.5, 1.4)
+        .turn_to(0.0);
+    // Step 2 drives back through what step 1 mapped (its first two legs, seen the same way)
+    // towards door A: known space, the paper's "realizes that it moves in a known area".
+    r.mark("2").go(2.5, 1.4).go(2.5, 3.0);
     r.mark("3")
         .go(2.5, 5.1)
         .go(5.5, 5.1)
@@ -700,21 +711,39 @@ pub fn case_study(seed: u64) -> Scenario {
         .turn_to(90.0)
         .wait(1.0)
         .go(8.3, 5.1);
-    r.mark("4").go(10.3, 5.1);
-    r.mark("5").go(11.5, 5.1);
+    // Lights off: the robot drives on and turns to face the south wall of the corridor's
+    // unique stretch between the look-alike pieces.
+    r.mark("4").go(9.5, 5.1).turn_to(-90.0);
+    // Lights on (5): it tracks again, facing a wall no map has (nothing to recognise, and
+    // nothing a look-alike could contradict: its counterpart 6 m west, next to door A, was
+    // never in view); then it keeps moving (6) towards door C, whose surroundings look like
+    // door B's.
+    r.mark("5").wait(1.5);
     r.mark("6")
+        .go(11.5, 5.1)
         .turn_to(90.0)
         .wait(0.7)
         .go(12.5, 5.1)
         .turn_to(90.0);
-    r.mark("7").go(12.5, 7.2).turn_to(0.0);
-    r.mark("8").go(13.6, 8.8).go(11.8, 8.8).go(12.5, 7.3);
-    r.mark("9").go(12.5, 5.1).turn_to(180.0);
+    // Through door C into Room 2 (7); the depth sees past the closet's far wall.
+    r.mark("7").go(12.5, 6.4);
+    // Explores Room 2 (8), then drives back west along the corridor to door A.
+    r.mark("8")
+        .go(12.5, 7.2)
+        .turn_to(0.0)
+        .go(13.6, 8.8)
+        .go(11.8, 8.8)
+        .go(12.5, 7.3)
+        .go(12.5, 5.1)
+        .turn_to(180.0);
     // The corridor is known by now: the robot drives it faster.
     r.speed = 1.3;
     r.go(2.5, 5.1);
     r.speed = 1.0;
-    r.go(2.5, 3.0).turn_to(-150.0);
+    r.turn_to(-90.0);
+    // Re-enters Room 1 (9) through door A, looking where step 1 looked back from, and drives
+    // step 1's third leg again.
+    r.mark("9").go(2.5, 2.8).go(4.0, 2.8);
     let t_kidnap = r.now();
     let leg1 = r.path(Jitter::new(m(0x9000), 0.0, 0.0015, true));
     let marks1 = r.marks.clone();
@@ -760,10 +789,14 @@ pub fn case_study(seed: u64) -> Scenario {
             "enters Room 2: observations contradict the map (closet behind B differs)",
             &["CorruptedMap"],
         ),
-        ("explore Room 2", "explores Room 2", &["Idle", "Core(M&R)"]),
         (
-            "back to Room 1",
-            "drives back along the corridor and re-enters Room 1",
+            "explore Room 2",
+            "explores Room 2, drives back west along the corridor",
+            &["Idle", "Core(M&R)"],
+        ),
+        (
+            "re-enters Room 1",
+            "re-enters Room 1 through door A",
             &["Localized"],
         ),
         (
