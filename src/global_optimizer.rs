@@ -319,6 +319,81 @@ pub fn merge_depth_check(
         .collect()
 }
 
+/// Appearance check of a merge before it is made: the points of map `into`, seen from each
+/// keyframe of map `from` placed by `alignment`, where that keyframe's depth says the surface
+/// carrying them is in view (a keypoint with the predicted depth next to the projection) and
+/// from a viewpoint whose scale and angle ORB matches across. Per keyframe of `from`: (points
+/// judged, points re-observed — a keypoint near the projection whose descriptor is the
+/// point's). A copy of a place joined by aliasing has the same geometry around it (the depth
+/// check passes), but its unique surroundings carry other textures: the structure `into` has
+/// there is in view and not seen.
+pub fn merge_appearance_check(
+    geo: &crate::preprocess::ImageGeometry,
+    into: &Map,
+    from: &Map,
+    alignment: &Isometry3<f64>,
+) -> Vec<(KfId, usize, usize)> {
+    let to_from = alignment.inverse();
+    // The newest keyframes only: the alignment was measured where the camera is now, and
+    // older parts of `from` carry the drift of its whole trajectory since.
+    from.keyframes
+        .values()
+        .rev()
+        .take(APPEARANCE_KEYFRAMES)
+        .map(|kf| {
+            let pose = kf.pose_cw * to_from;
+            let centre = pose.inverse().translation.vector;
+            let (mut judged, mut seen) = (0, 0);
+            for p in into.points.values() {
+                let pc = Map::in_camera(&pose, &p.position);
+                if pc.z <= 0.1 {
+                    continue;
+                }
+                let ray = p.position - centre;
+                let dist = ray.norm();
+                if dist < 0.8 * p.min_distance
+                    || dist > 1.2 * p.max_distance
+                    || ray.dot(&p.normal) < APPEARANCE_MIN_COS * dist
+                {
+                    continue;
+                }
+                let Some(uv) = geo.project_in_image(&pc) else {
+                    continue;
+                };
+                let near = kf
+                    .grid
+                    .in_area(&kf.keypoints, uv.x, uv.y, APPEARANCE_SEARCH_PX, 0, u8::MAX);
+                let tol = depth_tolerance(pc.z);
+                let surface = near.iter().any(|&i| {
+                    let d = kf.depth[i] as f64;
+                    d > 0.0 && (d - pc.z).abs() <= tol
+                });
+                if !surface {
+                    continue;
+                }
+                judged += 1;
+                if near.iter().any(|&i| {
+                    crate::preprocess::hamming(&kf.descriptors[i], &p.descriptor)
+                        <= APPEARANCE_MAX_HAMMING
+                }) {
+                    seen += 1;
+                }
+            }
+            (kf.id, judged, seen)
+        })
+        .collect()
+}
+
+/// Keyframes of the merged map judged by the appearance check (its newest).
+const APPEARANCE_KEYFRAMES: usize = 10;
+/// Viewing angle (cosine to the point's mean viewing direction) up to which ORB descriptors
+/// are expected to match: 60 degrees.
+const APPEARANCE_MIN_COS: f64 = 0.5;
+/// Image radius (pixels) searched for the re-observation of a projected point.
+const APPEARANCE_SEARCH_PX: f64 = 10.0;
+/// Hamming distance of a re-observation (unrelated ORB descriptors are ~128 apart).
+const APPEARANCE_MAX_HAMMING: u32 = 64;
+
 /// Depth check of a new keyframe against the rest of its own map: the map points it does not
 /// observe, seen from it. Returns (points judged, points it saw clearly through). A map that
 /// a wrong closure joined to a look-alike place passes every check at the place itself, but

@@ -15,7 +15,7 @@ use crate::output::{ClosureRow, Timing};
 use crate::preprocess::Measurement;
 use crate::tracker::TrackResult;
 use nalgebra::Isometry3;
-use std::collections::BTreeSet;
+use std::collections::{BTreeMap, BTreeSet};
 
 /// A tracked frame: its pose relative to its reference keyframe (`T_cw · T_kw⁻¹`, taken when
 /// the frame was tracked, so that it follows the keyframe through every later optimisation;
@@ -28,6 +28,14 @@ const CANDIDATES_PER_QUERY: usize = 2;
 
 /// Fewest detector votes for a relocalization near miss to be validated (see `relocalize`).
 const NEAR_MISS_MIN_VOTES: usize = 8;
+
+/// Shared map points that make a keyframe part of a look-alike place (the covisibility
+/// graph's edge threshold).
+const LOOKALIKE_COVISIBILITY: u32 = 15;
+/// With depth: a keyframe looks at a look-alike place when this share of its points lie in
+/// the voxels (of this size, m) holding the look-alike keyframes' points.
+const LOOKALIKE_VOXEL_M: f64 = 0.25;
+const LOOKALIKE_SHARED: f64 = 0.05;
 
 /// Cells of the expectation check: image width / 32 (20 px at 640 × 480); and of the coverage
 /// of the view by the map: width / 8.
@@ -578,6 +586,30 @@ impl StateMachine {
                         self.refuse_merge(acc, kind, m, kf, share);
                         return false;
                     }
+                    let seen = global_optimizer::merge_appearance_check(
+                        &self.geo,
+                        into,
+                        from,
+                        &acc.alignment.to_isometry(),
+                    );
+                    tracing::debug!(
+                        "frame {}: merge appearance check map {} -> {} (keyframe, judged, re-observed): {:?}",
+                        m.frame,
+                        acc.query_map,
+                        acc.match_map,
+                        seen
+                    );
+                    let least = seen
+                        .iter()
+                        .filter(|(_, judged, _)| *judged >= c.min_expected_cells as usize)
+                        .map(|&(kf, judged, found)| (found as f64 / judged as f64, kf))
+                        .min_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+                    if let Some((share, kf)) = least
+                        && share < c.min_merge_reobserved
+                    {
+                        self.refuse_unseen_merge(acc, kind, m, kf, share);
+                        return false;
+                    }
                 }
                 tracing::info!(
                     "frame {}: {kind} pool accepted: map {} -> map {} from {} candidates (scale {:.3})",
@@ -611,9 +643,7 @@ impl StateMachine {
         }
     }
 
-    /// A pool whose merge the depth check refused (see `global_optimizer::merge_depth_check`):
-    /// its alignment is refused from now on, its candidates are logged as rejected and the
-    /// keyframes they matched are look-alikes.
+    /// A pool whose merge the depth check refused (see `global_optimizer::merge_depth_check`).
     fn refuse_merge(&mut self, acc: Accepted, kind: &str, m: &Measurement, kf: KfId, share: f64) {
         tracing::info!(
             "frame {}: {kind} pool refused: merging map {} into map {} would put {:.0} % of map {}'s points where keyframe {kf} saw through them (a look-alike place)",
@@ -623,6 +653,33 @@ impl StateMachine {
             100.0 * share,
             acc.match_map
         );
+        self.refuse(acc);
+    }
+
+    /// A pool whose merge the appearance check refused (see
+    /// `global_optimizer::merge_appearance_check`).
+    fn refuse_unseen_merge(
+        &mut self,
+        acc: Accepted,
+        kind: &str,
+        m: &Measurement,
+        kf: KfId,
+        share: f64,
+    ) {
+        tracing::info!(
+            "frame {}: {kind} pool refused: merging map {} into map {} would put map {}'s points in view of keyframe {kf}, which re-observes only {:.0} % of them (a look-alike place)",
+            m.frame,
+            acc.query_map,
+            acc.match_map,
+            acc.match_map,
+            100.0 * share
+        );
+        self.refuse(acc);
+    }
+
+    /// A refused pool: its alignment is refused from now on, its candidates are logged as
+    /// rejected and the keyframes they matched are look-alikes.
+    fn refuse(&mut self, acc: Accepted) {
         self.reloc_pool
             .refuse(acc.query_map, acc.match_map, acc.alignment);
         self.loop_pool
@@ -1004,12 +1061,17 @@ impl StateMachine {
     fn recover(&mut self) {
         self.flags.able_to_track = false;
         self.merger.poll(&mut self.atlas, true);
+        let aliased_before = self.aliased.clone();
         let recovered = if let Some((map, kf)) = self.contradicting_kf.take() {
             self.contradicting_keyframes = 0;
             self.recover_from_keyframe(map, kf)
         } else {
             self.recover_from_pools()
         };
+        if recovered {
+            let found: BTreeSet<KfId> = self.aliased.difference(&aliased_before).copied().collect();
+            self.undo_pools_anchored_at(&found);
+        }
         self.cond.recovered = Some(recovered);
         if recovered {
             self.flags.consistent_map = true;
@@ -1045,6 +1107,84 @@ impl StateMachine {
                        the atlas is marked corrupted";
             tracing::error!("{msg}");
             self.stop_reason = Some(msg.into());
+        }
+    }
+
+    /// After a recovery found the look-alike keyframes `lookalikes`: the pools still standing
+    /// whose closures matched the same place (one of those keyframes, or a keyframe sharing
+    /// points with one) are undone too. The recovery proved that place ambiguous: a second
+    /// closure to it is no better evidence than the one that was wrong, and it may have
+    /// nothing left in view that would contradict it.
+    fn undo_pools_anchored_at(&mut self, lookalikes: &BTreeSet<KfId>) {
+        if lookalikes.is_empty() {
+            return;
+        }
+        // With depth, the place is also what the look-alike keyframes saw: a keyframe whose
+        // points fall among theirs looks at the same place (from wherever it stood).
+        let voxel = |p: &nalgebra::Vector3<f64>| {
+            let v = p / LOOKALIKE_VOXEL_M;
+            (v.x.floor() as i64, v.y.floor() as i64, v.z.floor() as i64)
+        };
+        let mut place: BTreeMap<MapId, BTreeSet<(i64, i64, i64)>> = BTreeMap::new();
+        if !self.mono {
+            for l in lookalikes {
+                let Some(m) = self.atlas.map_of_keyframe(*l) else {
+                    continue;
+                };
+                let map = &self.atlas.maps[&m];
+                let cells = place.entry(m).or_default();
+                for id in map.keyframes[l].points.iter().flatten() {
+                    if let Some(p) = map.points.get(id) {
+                        cells.insert(voxel(&p.position));
+                    }
+                }
+            }
+        }
+        let sees_place = |map: &crate::map::Map, kf: KfId| {
+            let Some(k) = map.keyframes.get(&kf) else {
+                return false;
+            };
+            let shared = place.get(&map.id).map_or(0, |cells| {
+                k.points
+                    .iter()
+                    .flatten()
+                    .filter_map(|id| map.points.get(id))
+                    .filter(|p| cells.contains(&voxel(&p.position)))
+                    .count()
+            });
+            let own = k.points.iter().flatten().count().max(1);
+            lookalikes.contains(&kf)
+                || k.covisibility
+                    .iter()
+                    .any(|(o, w)| *w >= LOOKALIKE_COVISIBILITY && lookalikes.contains(o))
+                || shared as f64 / own as f64 >= LOOKALIKE_SHARED
+        };
+        let standing: Vec<PoolId> = self
+            .atlas
+            .pools
+            .iter()
+            .rev()
+            .filter(|p| p.undoable())
+            .map(|p| p.id)
+            .collect();
+        for p in standing {
+            let Some(rec) = self.atlas.pools.get(p as usize) else {
+                continue;
+            };
+            if !rec.undoable() {
+                continue;
+            }
+            let anchored = rec.edges.iter().any(|e| {
+                self.atlas
+                    .map_of_keyframe(e.matched)
+                    .is_some_and(|m| sees_place(&self.atlas.maps[&m], e.matched))
+            });
+            if anchored {
+                tracing::info!(
+                    "pool {p} matched the look-alike place the recovery found: undone too"
+                );
+                self.undo_pool(p);
+            }
         }
     }
 
