@@ -86,6 +86,21 @@ pub fn assert_clear_error(ok: bool, stderr: &str, needle: &str) {
     );
 }
 
+/// Generates synthetic scenario `name` (seed 1, realistic sensor) at full size (640×480,
+/// every frame).
+pub fn synth_full(name: &str, dir: &Path) {
+    use homing_datasets::{scenarios, sensor::SensorOptions, writer};
+    let sc = scenarios::build(name, 1).unwrap();
+    let opts = writer::GenOptions {
+        out: dir.to_path_buf(),
+        small: false,
+        seed: 1,
+        sensor: SensorOptions::realistic(),
+        max_frames: None,
+    };
+    writer::generate(&sc, &opts).unwrap();
+}
+
 /// Generates synthetic scenario `name` (seed 1, realistic sensor) at 320×240, keeping every
 /// `stride`-th frame (`None`: the scenario's own `--small` stride).
 pub fn synth_small(name: &str, dir: &Path, stride: Option<usize>) {
