@@ -286,10 +286,6 @@ pub struct ControllerConfig {
     /// With depth: share of the predicted points judged by depth that the camera sees clearly
     /// behind their predicted place, above which a frame fails the expectation check.
     pub max_contradiction: f64,
-    /// With depth: a merge is refused when one of the merged map's newest keyframes has the
-    /// other map's points in view (where its depth says their surface is) and re-observes
-    /// less than this share of them (a look-alike place with other surroundings).
-    pub min_merge_reobserved: f64,
     /// Consecutive failing frames before Localized declares the map corrupted.
     pub corrupted_after_frames: u32,
     /// Consecutive new keyframes that see through more than `max_contradiction` of the rest of
@@ -325,7 +321,6 @@ impl Default for ControllerConfig {
             kind: ControllerKind::Ours,
             min_expectation_ratio: 0.3,
             max_contradiction: 0.3,
-            min_merge_reobserved: 0.05,
             corrupted_after_frames: 5,
             keyframes_contradicting: 1,
             min_expected_cells: 30,
@@ -670,12 +665,6 @@ impl Config {
         c.range(
             "controller.max_contradiction",
             k.max_contradiction,
-            0.0,
-            1.0,
-        );
-        c.range(
-            "controller.min_merge_reobserved",
-            k.min_merge_reobserved,
             0.0,
             1.0,
         );

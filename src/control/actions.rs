@@ -555,59 +555,17 @@ impl StateMachine {
                 };
                 let Some(acc) = accepted else { return false };
                 if acc.query_map != acc.match_map && !self.mono {
-                    let (Some(into), Some(from)) = (
-                        self.atlas.maps.get(&acc.match_map),
-                        self.atlas.maps.get(&acc.query_map),
-                    ) else {
+                    let Some(refusal) = self.merge_refusal(&acc, m) else {
                         return false;
                     };
-                    let per_kf = global_optimizer::merge_depth_check(
-                        &self.geo,
-                        into,
-                        from,
-                        &acc.alignment.to_isometry(),
-                    );
-                    tracing::debug!(
-                        "frame {}: merge depth check map {} -> {} (keyframe, judged, seen through): {:?}",
-                        m.frame,
-                        acc.query_map,
-                        acc.match_map,
-                        per_kf
-                    );
-                    let c = &self.cfg.controller;
-                    let worst = per_kf
-                        .iter()
-                        .filter(|(_, judged, _)| *judged >= c.min_expected_cells as usize)
-                        .map(|&(kf, judged, through)| (through as f64 / judged as f64, kf))
-                        .max_by(|a, b| a.0.total_cmp(&b.0).then(b.1.cmp(&a.1)));
-                    if let Some((share, kf)) = worst
-                        && share > c.max_contradiction
-                    {
-                        self.refuse_merge(acc, kind, m, kf, share);
-                        return false;
-                    }
-                    let seen = global_optimizer::merge_appearance_check(
-                        &self.geo,
-                        into,
-                        from,
-                        &acc.alignment.to_isometry(),
-                    );
-                    tracing::debug!(
-                        "frame {}: merge appearance check map {} -> {} (keyframe, judged, re-observed): {:?}",
-                        m.frame,
-                        acc.query_map,
-                        acc.match_map,
-                        seen
-                    );
-                    let least = seen
-                        .iter()
-                        .filter(|(_, judged, _)| *judged >= c.min_expected_cells as usize)
-                        .map(|&(kf, judged, found)| (found as f64 / judged as f64, kf))
-                        .min_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-                    if let Some((share, kf)) = least
-                        && share < c.min_merge_reobserved
-                    {
-                        self.refuse_unseen_merge(acc, kind, m, kf, share);
+                    if let Some(why) = refusal {
+                        tracing::info!(
+                            "frame {}: {kind} pool refused: merging map {} into map {} {why} (a look-alike place)",
+                            m.frame,
+                            acc.query_map,
+                            acc.match_map
+                        );
+                        self.refuse(acc);
                         return false;
                     }
                 }
@@ -643,38 +601,37 @@ impl StateMachine {
         }
     }
 
-    /// A pool whose merge the depth check refused (see `global_optimizer::merge_depth_check`).
-    fn refuse_merge(&mut self, acc: Accepted, kind: &str, m: &Measurement, kf: KfId, share: f64) {
-        tracing::info!(
-            "frame {}: {kind} pool refused: merging map {} into map {} would put {:.0} % of map {}'s points where keyframe {kf} saw through them (a look-alike place)",
+    /// The merge check of a pool joining two maps (with depth): the matched map's points seen
+    /// from the query map's keyframes under the pool's alignment
+    /// ([`global_optimizer::merge_depth_check`]). `None` when a map is gone, `Some(None)` when
+    /// the merge may go ahead, `Some(Some(why))` when a keyframe sees clearly through them.
+    fn merge_refusal(&self, acc: &Accepted, m: &Measurement) -> Option<Option<String>> {
+        let into = self.atlas.maps.get(&acc.match_map)?;
+        let from = self.atlas.maps.get(&acc.query_map)?;
+        let c = &self.cfg.controller;
+        let alignment = acc.alignment.to_isometry();
+        let through = global_optimizer::merge_depth_check(&self.geo, into, from, &alignment);
+        tracing::debug!(
+            "frame {}: merge depth check map {} -> {} (keyframe, judged, seen through): {through:?}",
             m.frame,
             acc.query_map,
-            acc.match_map,
-            100.0 * share,
             acc.match_map
         );
-        self.refuse(acc);
-    }
-
-    /// A pool whose merge the appearance check refused (see
-    /// `global_optimizer::merge_appearance_check`).
-    fn refuse_unseen_merge(
-        &mut self,
-        acc: Accepted,
-        kind: &str,
-        m: &Measurement,
-        kf: KfId,
-        share: f64,
-    ) {
-        tracing::info!(
-            "frame {}: {kind} pool refused: merging map {} into map {} would put map {}'s points in view of keyframe {kf}, which re-observes only {:.0} % of them (a look-alike place)",
-            m.frame,
-            acc.query_map,
-            acc.match_map,
-            acc.match_map,
-            100.0 * share
-        );
-        self.refuse(acc);
+        let worst = through
+            .iter()
+            .filter(|(_, judged, _)| *judged >= c.min_expected_cells as usize)
+            .map(|&(kf, judged, n)| (n as f64 / judged as f64, kf))
+            .max_by(|a, b| a.0.total_cmp(&b.0).then(b.1.cmp(&a.1)));
+        if let Some((share, kf)) = worst
+            && share > c.max_contradiction
+        {
+            return Some(Some(format!(
+                "would put {:.0} % of map {}'s points where keyframe {kf} saw through them",
+                100.0 * share,
+                acc.match_map
+            )));
+        }
+        Some(None)
     }
 
     /// A refused pool: its alignment is refused from now on, its candidates are logged as
