@@ -575,27 +575,12 @@ fn transformed(mut map: Map, s: &Sim3) -> Map {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::preprocess::{FeatureGrid, Keypoint, Measurement};
+    use crate::preprocess::Measurement;
     use nalgebra::{Point3, Rotation3, Vector2, Vector3};
 
     fn measurement(frame: usize) -> Measurement {
-        let keypoints: Vec<Keypoint> = (0..10)
-            .map(|i| Keypoint {
-                raw: Vector2::new(10.0 * i as f64, 20.0),
-                un: Vector2::new(10.0 * i as f64, 20.0),
-                octave: 0,
-                angle: 0.0,
-                response: 1.0,
-            })
-            .collect();
-        Measurement {
-            frame,
-            t: frame as f64,
-            grid: FeatureGrid::new(640, 480, &keypoints),
-            descriptors: vec![[frame as u8; 32]; keypoints.len()],
-            depth: vec![1.0; keypoints.len()],
-            keypoints,
-        }
+        let uvs = (0..10).map(|i| Vector2::new(10.0 * i as f64, 20.0));
+        Measurement::synthetic(frame, uvs, 0.0, 1.0, vec![[frame as u8; 32]; 10])
     }
 
     fn small_map(atlas: &mut Atlas, frame: usize) -> MapId {

@@ -464,32 +464,15 @@ pub fn expectation(
 mod tests {
     use super::*;
     use crate::optim::Intrinsics;
-    use crate::preprocess::{FeatureGrid, ImageGeometry, Keypoint, Measurement};
+    use crate::preprocess::{ImageGeometry, Measurement};
     use nalgebra::{Vector2, Vector3};
 
     /// A 20 × 15 grid of keypoints over a 640 × 480 image, every one with depth `depth`.
     fn wall_view(frame: usize, depth: f32) -> Measurement {
-        let mut keypoints = Vec::new();
-        for j in 0..15 {
-            for i in 0..20 {
-                let uv = Vector2::new(16.0 + 32.0 * i as f64, 16.0 + 32.0 * j as f64);
-                keypoints.push(Keypoint {
-                    raw: uv,
-                    un: uv,
-                    octave: 0,
-                    angle: 0.0,
-                    response: 1.0,
-                });
-            }
-        }
-        Measurement {
-            frame,
-            t: frame as f64,
-            grid: FeatureGrid::new(640, 480, &keypoints),
-            descriptors: vec![[0u8; 32]; keypoints.len()],
-            depth: vec![depth; keypoints.len()],
-            keypoints,
-        }
+        let uvs = (0..15).flat_map(|j| {
+            (0..20).map(move |i| Vector2::new(16.0 + 32.0 * i as f64, 16.0 + 32.0 * j as f64))
+        });
+        Measurement::synthetic(frame, uvs, 0.0, depth, vec![[0u8; 32]; 300])
     }
 
     /// A keyframe at the origin whose points lie at its depth readings.

@@ -790,25 +790,7 @@ mod tests {
         depth: f32,
         descriptors: Vec<[u8; 32]>,
     ) -> Measurement {
-        use crate::preprocess::{FeatureGrid, Keypoint};
-        let keypoints: Vec<Keypoint> = uvs
-            .into_iter()
-            .map(|uv| Keypoint {
-                raw: uv,
-                un: uv,
-                octave: 0,
-                angle: 30.0,
-                response: 1.0,
-            })
-            .collect();
-        Measurement {
-            frame,
-            t: frame as f64,
-            grid: FeatureGrid::new(640, 480, &keypoints),
-            depth: vec![depth; keypoints.len()],
-            descriptors,
-            keypoints,
-        }
+        Measurement::synthetic(frame, uvs, 30.0, depth, descriptors)
     }
 
     /// A view of `n` keypoints with the given descriptors (all with depth 2 m).

@@ -92,6 +92,36 @@ impl Measurement {
     pub fn n_with_depth(&self) -> usize {
         self.depth.iter().filter(|&&d| d > 0.0).count()
     }
+
+    /// Test fixture: keypoints at the undistorted pixels `uvs` of a 640 × 480 image (level 0,
+    /// angle `angle`), all at depth `depth` (0: monocular), with the given descriptors.
+    #[cfg(test)]
+    pub(crate) fn synthetic(
+        frame: usize,
+        uvs: impl IntoIterator<Item = nalgebra::Vector2<f64>>,
+        angle: f32,
+        depth: f32,
+        descriptors: Vec<Descriptor>,
+    ) -> Self {
+        let keypoints: Vec<Keypoint> = uvs
+            .into_iter()
+            .map(|uv| Keypoint {
+                raw: uv,
+                un: uv,
+                octave: 0,
+                angle,
+                response: 1.0,
+            })
+            .collect();
+        Measurement {
+            frame,
+            t: frame as f64,
+            grid: FeatureGrid::new(640, 480, &keypoints),
+            depth: vec![depth; keypoints.len()],
+            descriptors,
+            keypoints,
+        }
+    }
 }
 
 /// Buckets keypoint indices by undistorted position, for fast projection search. Saved maps
