@@ -74,9 +74,6 @@ impl ClosureEdge {
 
 /// `S(a) ∘ z ∘ S(b)`, `S(x)` the pure scaling by `x` (exactly `z` when both are 1).
 fn in_units(z: &Sim3, a: f64, b: f64) -> Sim3 {
-    if a == 1.0 && b == 1.0 {
-        return *z;
-    }
     Sim3 {
         rotation: z.rotation,
         translation: a * z.translation,

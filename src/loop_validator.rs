@@ -782,23 +782,12 @@ mod tests {
         assert!((r - info).norm() < 1e-12);
     }
 
-    /// A measurement of keypoints at `uvs` (level 0, angle 30°) with the given descriptors,
-    /// all at depth `depth` (0: monocular).
-    fn measurement_at(
-        frame: usize,
-        uvs: Vec<nalgebra::Vector2<f64>>,
-        depth: f32,
-        descriptors: Vec<[u8; 32]>,
-    ) -> Measurement {
-        Measurement::synthetic(frame, uvs, 30.0, depth, descriptors)
-    }
-
     /// A view of `n` keypoints with the given descriptors (all with depth 2 m).
     fn view(frame: usize, descriptors: Vec<[u8; 32]>) -> Measurement {
-        let uvs = (0..descriptors.len())
+        let uvs: Vec<_> = (0..descriptors.len())
             .map(|i| nalgebra::Vector2::new(20.0 + 6.0 * i as f64, 240.0))
             .collect();
-        measurement_at(frame, uvs, 2.0, descriptors)
+        Measurement::synthetic(frame, uvs, 30.0, 2.0, descriptors)
     }
 
     #[test]
@@ -846,7 +835,7 @@ mod tests {
         xs: &[Vector3<f64>],
         descriptors: &[[u8; 32]],
     ) -> Measurement {
-        let uvs = xs
+        let uvs: Vec<_> = xs
             .iter()
             .map(|x| {
                 let pc = pose_cw * Point3::from(*x);
@@ -854,7 +843,7 @@ mod tests {
                     .unwrap_or(nalgebra::Vector2::new(320.0, 240.0))
             })
             .collect();
-        measurement_at(frame, uvs, 0.0, descriptors.to_vec())
+        Measurement::synthetic(frame, uvs, 30.0, 0.0, descriptors.to_vec())
     }
 
     #[test]

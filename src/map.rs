@@ -75,6 +75,21 @@ impl Keyframe {
         self.pose_cw.inverse().translation.vector
     }
 
+    /// What a frame tracked at `pose_cw` keeps relative to this keyframe: `T_cw · T_kw⁻¹`,
+    /// its translation in the keyframe's creation units (see `units`).
+    pub fn relative_of(&self, pose_cw: &Isometry3<f64>) -> Isometry3<f64> {
+        let mut rel = pose_cw * self.pose_cw.inverse();
+        rel.translation.vector /= self.units;
+        rel
+    }
+
+    /// The camera pose (`T_cw`) of a frame kept relative to this keyframe ([`Self::relative_of`]).
+    pub fn pose_from_relative(&self, rel: &Isometry3<f64>) -> Isometry3<f64> {
+        let mut rel = *rel;
+        rel.translation.vector *= self.units;
+        rel * self.pose_cw
+    }
+
     pub fn n_points(&self) -> usize {
         self.points.iter().filter(|p| p.is_some()).count()
     }

@@ -305,30 +305,22 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
     }
     let state = fin.state;
     // Resolve every frame's pose through its keyframe in the final atlas.
-    // Relative translations are in the keyframe's creation units (see `Keyframe::units`).
-    let kf_map: std::collections::BTreeMap<KfId, (u32, Isometry3<f64>, f64)> = machine
+    let kf_map: std::collections::BTreeMap<KfId, (u32, &crate::map::Keyframe)> = machine
         .atlas
         .maps
         .values()
-        .flat_map(|m| {
-            m.keyframes
-                .values()
-                .map(move |k| (k.id, (m.id, k.pose_cw, k.units)))
-        })
+        .flat_map(|m| m.keyframes.values().map(move |k| (k.id, (m.id, k))))
         .collect();
     let mut frame_map: std::collections::BTreeMap<usize, u32> = std::collections::BTreeMap::new();
     let mut trajectory: Vec<StampedPose> = Vec::with_capacity(relative.len());
     let mut pose_maps: Vec<(f64, u32)> = Vec::with_capacity(relative.len());
     let mut posed: Vec<crate::mcap_log::PosedFrame> = Vec::new();
     for (frame, t, kf, rel) in &relative {
-        let Some((map, kf_pose, units)) = kf_map.get(kf) else {
+        let Some((map, k)) = kf_map.get(kf) else {
             poses_discarded += 1;
             continue;
         };
-        let mut rel = *rel;
-        if *units != 1.0 {
-            rel.translation.vector *= *units;
-        }
+        let pose_wc = k.pose_from_relative(rel).inverse();
         frame_map.insert(*frame, *map);
         pose_maps.push((*t, *map));
         if opts.mcap_log {
@@ -336,12 +328,12 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
                 frame: *frame,
                 t: *t,
                 map: *map,
-                pose: (rel * kf_pose).inverse(),
+                pose: pose_wc,
             });
         }
         trajectory.push(StampedPose {
             t: *t,
-            pose: (rel * kf_pose).inverse(),
+            pose: pose_wc,
         });
     }
     for row in states.iter_mut() {

@@ -269,16 +269,14 @@ mod imp {
             )?;
 
             if let Some((rel, map, kf)) = &out.pose {
-                let kf_pose = machine
+                let pose_cw = machine
                     .atlas
                     .maps
                     .get(map)
                     .and_then(|mp| mp.keyframes.get(kf))
-                    .map(|k| (k.pose_cw, k.units));
-                if let Some((kf_pose, units)) = kf_pose {
-                    let mut rel = *rel;
-                    rel.translation.vector *= units;
-                    let pose_wc = (rel * kf_pose).inverse();
+                    .map(|k| k.pose_from_relative(rel));
+                if let Some(pose_cw) = pose_cw {
+                    let pose_wc = pose_cw.inverse();
                     self.log("world/camera", &transform(&pose_wc))?;
                     let traj = self.trajectories.entry(*map).or_default();
                     traj.push(p3(&pose_wc.translation.vector));

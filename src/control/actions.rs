@@ -217,12 +217,7 @@ impl StateMachine {
             .or(self.tracker.reference_kf)
             .or_else(|| map.keyframes.keys().next_back().copied())
             .expect("a map has a keyframe");
-        let k = &map.keyframes[&kf];
-        let mut rel = track.pose_cw * k.pose_cw.inverse();
-        if k.units != 1.0 {
-            rel.translation.vector /= k.units;
-        }
-        (rel, cur, kf)
+        (map.keyframes[&kf].relative_of(&track.pose_cw), cur, kf)
     }
 
     /// Core: region Mapping (tracker, map merger, loop closing on the current map) and region
