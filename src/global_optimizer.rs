@@ -223,12 +223,10 @@ fn apply(map: &mut Map, ids: &[KfId], before: &[Sim3], graph: &PoseGraph) {
         // `S = [sR | t]` maps the world to camera coordinates `s` times too long: the camera
         // is `[R | t/s]` and its frame's lengths change by `1/s` (ORB-SLAM's loop correction).
         let mut pose: Isometry3<f64> = new.to_isometry();
-        if new.scale != 1.0 {
-            pose.translation.vector /= new.scale;
-            kf.units /= new.scale;
-            for i in 3..6 {
-                kf.twist[i] /= new.scale;
-            }
+        pose.translation.vector /= new.scale;
+        kf.units /= new.scale;
+        for i in 3..6 {
+            kf.twist[i] /= new.scale;
         }
         pose.rotation.renormalize();
         kf.pose_cw = pose;

@@ -716,8 +716,11 @@ impl StateMachine {
             let mut t_qr = v.query_pose * r_kf.pose_cw.inverse();
             t_qr.translation.vector *= v.scale;
             let rel = m_kf.pose_cw * v.pose_in_match.inverse() * t_qr;
-            let scale = if into == from { v.scale } else { 1.0 };
-            let units_after_merge = if into == from { 1.0 } else { v.scale };
+            let (scale, units_after_merge) = if into == from {
+                (v.scale, 1.0)
+            } else {
+                (1.0, v.scale)
+            };
             let z = Sim3 {
                 scale,
                 ..Sim3::from_isometry(&rel)
@@ -1020,12 +1023,10 @@ impl StateMachine {
         } else {
             self.recover_from_pools()
         };
+        self.cond.recovered = Some(recovered);
         if recovered {
             let found: BTreeSet<KfId> = self.aliased.difference(&aliased_before).copied().collect();
             self.undo_pools_anchored_at(&found);
-        }
-        self.cond.recovered = Some(recovered);
-        if recovered {
             self.flags.consistent_map = true;
             self.suspects.clear();
             // When the newest pool was undone and its query map is back as it was, the camera
