@@ -273,6 +273,14 @@ impl Atlas {
         }
     }
 
+    /// Removes a map that no pool involves (see the controller's unconfirmed maps); its ids
+    /// are never reused.
+    pub fn discard_map(&mut self, id: MapId) -> Option<Map> {
+        self.refresh_high_water();
+        self.loaded.retain(|&m| m != id);
+        self.maps.remove(&id)
+    }
+
     /// The map with the most keyframes (ties: the lower id).
     pub fn largest_map(&self) -> Option<MapId> {
         self.maps

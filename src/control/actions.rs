@@ -119,6 +119,7 @@ impl StateMachine {
         let pose = map.keyframes[&kf].pose_cw;
         let id = self.atlas.insert_map(map);
         self.start_tracking_in(id, kf, pose, m);
+        self.founded = Some((id, m.t));
         tracing::info!("frame {}: new map {id}", m.frame);
         Some((Isometry3::identity(), id, kf))
     }
@@ -203,7 +204,33 @@ impl StateMachine {
         }
         self.flags.able_to_track = false;
         self.tracker.lose();
+        self.discard_unconfirmed(cur, m);
         None
+    }
+
+    /// A map lost on the very next frame after the one it was started from holds a single
+    /// view that no other frame confirmed: a false measurement (an image from elsewhere) as
+    /// likely as a real one. It is discarded before it can anchor a closure that would place
+    /// the camera where that image was taken (ORB-SLAM3 likewise resets a map lost right
+    /// after its start). Nothing else refers to it yet: no frame but the first was tracked in
+    /// it and pools need several.
+    fn discard_unconfirmed(&mut self, cur: MapId, m: &Measurement) {
+        let Some((id, t0)) = self.founded else { return };
+        if id != cur || self.last_tracked_t != Some(t0) {
+            return;
+        }
+        if let Some(map) = self.atlas.discard_map(id) {
+            for k in map.keyframes.keys() {
+                self.detector.remove(*k as u64);
+            }
+            tracing::info!(
+                "frame {}: map {id} discarded: lost on the frame after its first",
+                m.frame
+            );
+        }
+        self.founded = None;
+        self.current = None;
+        self.last_tracked_t = None;
     }
 
     /// Bookkeeping of a tracked frame; returns its pose.

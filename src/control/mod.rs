@@ -86,6 +86,9 @@ pub struct StateMachine {
     current: Option<MapId>,
     /// Stamp of the last tracked frame (a short gap is re-tracked in the same map).
     last_tracked_t: Option<f64>,
+    /// The map started last and the stamp of the frame it was started from: until another
+    /// frame is tracked in it, one unconfirmed view (see `discard_unconfirmed`).
+    founded: Option<(MapId, f64)>,
     /// The pool accepted by the validator, waiting for Localized's entry.
     accepted: Option<Accepted>,
     /// Consecutive frames in Localized whose expectation failed, and whose view the map did
@@ -154,6 +157,7 @@ impl StateMachine {
             atlas: Atlas::new(),
             current: None,
             last_tracked_t: None,
+            founded: None,
             accepted: None,
             expectation_failures: 0,
             localized_peak_inliers: 0,
