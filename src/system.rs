@@ -10,7 +10,7 @@ use crate::error::{Error, Result};
 use crate::eval::{self, Alignment, RpeUnit};
 use crate::io::Sequence;
 use crate::io::mcap::{McapSequence, McapTopics};
-use crate::io::perturb::{PerturbationSpec, PerturbedSequence};
+use crate::io::perturb::{PerturbationPlan, PerturbationSpec, PerturbedSequence};
 use crate::io::tum::{FrameSource, StampedPose, TumSequence};
 use crate::map::KfId;
 use crate::optim::Intrinsics;
@@ -373,7 +373,7 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
         .collect();
 
     let evaluation = if opts.eval {
-        evaluate(&seq, &trajectory, &spec, &closures, &pose_maps)?
+        evaluate(&seq, &trajectory, &spec, &perturbed.plan, &closures, &pose_maps)?
     } else {
         None
     };
@@ -476,10 +476,16 @@ fn open_sequence(
 }
 
 /// ATE/RPE against the sequence's ground truth, or a note why there is none.
+/// A stamp as the output files write it (microseconds), for matching stamps exactly.
+fn stamp_key(t: f64) -> u64 {
+    (t * 1e6).round() as u64
+}
+
 fn evaluate(
     seq: &Sequence,
     est: &[StampedPose],
     spec: &PerturbationSpec,
+    plan: &PerturbationPlan,
     closures: &[ClosureRow],
     pose_maps: &[(f64, u32)],
 ) -> Result<Option<serde_json::Value>> {
@@ -517,7 +523,24 @@ fn evaluate(
     let rpe = eval::rpe(&assoc, 1.0, RpeUnit::Seconds, false).ok();
     let (maps, largest) = eval::run::per_map_ate(&gt, est, pose_maps, align, 0.02);
     let mono = (align == Alignment::Sim3).then(|| eval::run::MonoScales::from_maps(&maps, largest));
-    let closures = eval::run::check_closures(closures, &gt, 0.02, mono.as_ref());
+    // A closure relates images: one whose keyframe or query is a foreign frame is judged by
+    // where that image was taken (its source frame's ground truth), not by the stamp it was
+    // delivered under.
+    let source_stamp: std::collections::BTreeMap<u64, f64> = plan
+        .faults
+        .iter()
+        .filter_map(|f| Some((stamp_key(stamps[f.frame]), stamps[f.source?])))
+        .collect();
+    let restamp = |t: f64| source_stamp.get(&stamp_key(t)).copied().unwrap_or(t);
+    let closures: Vec<ClosureRow> = closures
+        .iter()
+        .map(|r| ClosureRow {
+            t_query: restamp(r.t_query),
+            t_match: restamp(r.t_match),
+            ..r.clone()
+        })
+        .collect();
+    let closures = eval::run::check_closures(&closures, &gt, 0.02, mono.as_ref());
     let largest_map = largest.and_then(|l| maps.iter().find(|m| m.map == l));
     // Coverage of the largest map alone: frames posed in disconnected maps do not count, so a
     // controller that starts a new map on every loss (PRoSLAM) is not credited for poses it

@@ -159,6 +159,7 @@ fn a_map_started_from_a_false_frame_is_discarded() {
             seed: 5,
             ..Default::default()
         },
+        eval: true,
         ..Default::default()
     })
     .unwrap();
@@ -191,4 +192,10 @@ fn a_map_started_from_a_false_frame_is_discarded() {
         );
     }
     assert_eq!(s.maps, 1, "{} maps", s.maps);
+    // The closures are judged by where their images were taken: a keyframe made from a
+    // tracked foreign frame shows its source frame's view, and a closure to it is right when
+    // it places the camera there (judged by the delivered stamp, this run had 2 "wrong").
+    let closures = &s.evaluation.unwrap()["closures"];
+    assert!(closures["accepted"].as_u64().unwrap() >= 3, "{closures}");
+    assert_eq!(closures["accepted_wrong"], 0, "{closures}");
 }
