@@ -51,13 +51,23 @@ pub struct Tracker {
     geo: ImageGeometry,
     last_pose: Option<Isometry3<f64>>,
     last_t: Option<f64>,
+    /// Motion over one frame interval, `velocity_dt` seconds long.
     velocity: Option<Isometry3<f64>>,
+    velocity_dt: f64,
     /// Velocity used for the rolling-shutter model of the frame being tracked.
     twist: Vector6<f64>,
     last_matches: Vec<(usize, PointId)>,
     /// Orientation of each key point of the last tracked frame (rotation-consistency check).
     last_angles: Vec<f32>,
     pub reference_kf: Option<KfId>,
+}
+
+/// Frame intervals of `interval` seconds in `dt` (at least 1; 1 when the interval is unknown).
+fn frame_intervals(dt: f64, interval: f64) -> usize {
+    if interval <= 0.0 {
+        return 1;
+    }
+    ((dt / interval).round() as usize).clamp(1, 30)
 }
 
 /// A map point as the projection search needs it.
@@ -80,6 +90,7 @@ impl Tracker {
             last_pose: None,
             last_t: None,
             velocity: None,
+            velocity_dt: 0.0,
             twist: Vector6::zeros(),
             last_matches: Vec::new(),
             last_angles: Vec::new(),
@@ -98,6 +109,7 @@ impl Tracker {
         self.last_pose = Some(pose_cw);
         self.last_t = Some(t);
         self.velocity = None;
+        self.velocity_dt = 0.0;
         self.twist = Vector6::zeros();
         self.last_matches = matches
             .iter()
@@ -108,17 +120,29 @@ impl Tracker {
         self.reference_kf = Some(reference_kf);
     }
 
-    /// Forgets the motion model (tracking lost).
+    /// A frame was not tracked. The last tracked frame and the motion model stay: within the
+    /// controller's re-acquisition gap the next frame is predicted across the missing ones
+    /// (a black or foreign frame between two good ones costs no more than that frame); after
+    /// a longer break a new map resets the tracker.
     pub fn lose(&mut self) {
-        self.velocity = None;
         self.twist = Vector6::zeros();
-        self.last_matches.clear();
+    }
+
+    /// The constant-velocity prediction for a frame at `t`: the velocity applied once per
+    /// frame interval since the last tracked frame.
+    fn predict(&self, t: f64) -> Option<Isometry3<f64>> {
+        let (last, vel, last_t) = (self.last_pose?, self.velocity?, self.last_t?);
+        let mut pose = vel * last;
+        for _ in 1..frame_intervals(t - last_t, self.velocity_dt) {
+            pose = vel * pose;
+        }
+        Some(pose)
     }
 
     pub fn track(&mut self, m: &Measurement, map: &Map) -> TrackResult {
         let mut attempt = None;
-        if let (Some(last), Some(vel)) = (self.last_pose, self.velocity) {
-            attempt = self.with_motion_model(m, map, vel * last);
+        if let Some(predicted) = self.predict(m.t) {
+            attempt = self.with_motion_model(m, map, predicted);
         }
         if attempt.is_none() {
             attempt = self.with_reference_keyframe(m, map);
@@ -144,11 +168,22 @@ impl Tracker {
             return self.lost(m);
         }
         let reference_kf = reference_keyframe(map, &matches);
-        if let Some(last) = self.last_pose {
+        if let (Some(last), Some(last_t)) = (self.last_pose, self.last_t) {
             // Renormalised: the motion model composes poses every frame and would amplify any
             // rounding drift of the rotation geometrically.
             let mut v = pose * last.inverse();
             v.rotation.renormalize();
+            // Across missing frames, the motion of one interval (screw interpolation).
+            let n = frame_intervals(m.t - last_t, self.velocity_dt);
+            if n > 1 {
+                let step = 1.0 / n as f64;
+                v = Isometry3::from_parts(
+                    (v.translation.vector * step).into(),
+                    nalgebra::UnitQuaternion::identity().slerp(&v.rotation, step),
+                );
+            } else {
+                self.velocity_dt = m.t - last_t;
+            }
             self.velocity = Some(v);
         }
         self.last_pose = Some(pose);
