@@ -54,6 +54,9 @@ pub struct Tracker {
     /// Motion over one frame interval, `velocity_dt` seconds long.
     velocity: Option<Isometry3<f64>>,
     velocity_dt: f64,
+    /// Frames just before this one that were tracked but refused as implausible (see
+    /// `TrackerConfig::max_jump_m`).
+    refused_in_a_row: usize,
     /// Velocity used for the rolling-shutter model of the frame being tracked.
     twist: Vector6<f64>,
     last_matches: Vec<(usize, PointId)>,
@@ -61,6 +64,10 @@ pub struct Tracker {
     last_angles: Vec<f32>,
     pub reference_kf: Option<KfId>,
 }
+
+/// Most consecutive frames refused as implausible before the tracker accepts a jump (more
+/// refused a real jolt frame after frame: the revisit and aliasing rows lost half their map).
+const MAX_REFUSED_IN_A_ROW: usize = 1;
 
 /// Frame intervals of `interval` seconds in `dt` (at least 1; 1 when the interval is unknown).
 fn frame_intervals(dt: f64, interval: f64) -> usize {
@@ -91,6 +98,7 @@ impl Tracker {
             last_t: None,
             velocity: None,
             velocity_dt: 0.0,
+            refused_in_a_row: 0,
             twist: Vector6::zeros(),
             last_matches: Vec::new(),
             last_angles: Vec::new(),
@@ -110,6 +118,7 @@ impl Tracker {
         self.last_t = Some(t);
         self.velocity = None;
         self.velocity_dt = 0.0;
+        self.refused_in_a_row = 0;
         self.twist = Vector6::zeros();
         self.last_matches = matches
             .iter()
@@ -129,19 +138,21 @@ impl Tracker {
     }
 
     /// The constant-velocity prediction for a frame at `t`: the velocity applied once per
-    /// frame interval since the last tracked frame.
-    fn predict(&self, t: f64) -> Option<Isometry3<f64>> {
+    /// frame interval since the last tracked frame; and the number of intervals.
+    fn predict(&self, t: f64) -> Option<(Isometry3<f64>, usize)> {
         let (last, vel, last_t) = (self.last_pose?, self.velocity?, self.last_t?);
+        let n = frame_intervals(t - last_t, self.velocity_dt);
         let mut pose = vel * last;
-        for _ in 1..frame_intervals(t - last_t, self.velocity_dt) {
+        for _ in 1..n {
             pose = vel * pose;
         }
-        Some(pose)
+        Some((pose, n))
     }
 
     pub fn track(&mut self, m: &Measurement, map: &Map) -> TrackResult {
         let mut attempt = None;
-        if let Some(predicted) = self.predict(m.t) {
+        let prediction = self.predict(m.t);
+        if let Some((predicted, _)) = prediction {
             attempt = self.with_motion_model(m, map, predicted);
         }
         if attempt.is_none() {
@@ -167,6 +178,32 @@ impl Tracker {
         if !able {
             return self.lost(m);
         }
+        // A frame right after a tracked one that lands far off the constant-velocity
+        // prediction is a false measurement (an image from elsewhere that the map also
+        // explains): no camera turns or shifts that much between two frames. Its pose is not
+        // used and the motion model predicts the next frame across it. Only a frame that
+        // directly follows a tracked one is judged (across a gap the prediction is too loose),
+        // and never two in a row, so a real jolt costs one frame.
+        if let Some((predicted, 1)) = prediction
+            && self.refused_in_a_row < MAX_REFUSED_IN_A_ROW
+        {
+            let d = pose * predicted.inverse();
+            let (metres, degrees) = (
+                d.translation.vector.norm(),
+                d.rotation.angle().to_degrees(),
+            );
+            // The tolerances are for 30 Hz; lower frame rates move more between frames.
+            let r = (self.velocity_dt * 30.0).max(1.0);
+            if metres > r * self.cfg.max_jump_m || degrees > r * self.cfg.max_jump_deg {
+                tracing::debug!(
+                    "frame {}: tracked {metres:.3} m / {degrees:.1} deg off the motion model: refused as a false measurement",
+                    m.frame
+                );
+                self.refused_in_a_row += 1;
+                return self.lost(m);
+            }
+        }
+        self.refused_in_a_row = 0;
         let reference_kf = reference_keyframe(map, &matches);
         if let (Some(last), Some(last_t)) = (self.last_pose, self.last_t) {
             // Renormalised: the motion model composes poses every frame and would amplify any

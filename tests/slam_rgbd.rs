@@ -199,3 +199,50 @@ fn a_map_started_from_a_false_frame_is_discarded() {
     assert!(closures["accepted"].as_u64().unwrap() >= 3, "{closures}");
     assert_eq!(closures["accepted_wrong"], 0, "{closures}");
 }
+
+/// An isolated foreign frame (small desk, frame 60 replaced by frame 119's images) that the
+/// map can explain is still refused: its tracked pose lands far off the constant-velocity
+/// prediction. It gets no pose, and the next frame is tracked on in the same map.
+#[test]
+fn an_isolated_foreign_frame_is_refused_and_tracking_goes_on() {
+    use homing::io::perturb::PerturbationSpec;
+    let tmp = tempfile::tempdir().unwrap();
+    let sc = scenarios::build("desk", 1).unwrap();
+    let seq = tmp.path().join("desk");
+    generate(
+        &sc,
+        &GenOptions {
+            out: seq.clone(),
+            small: true,
+            seed: 1,
+            sensor: SensorOptions::realistic(),
+            max_frames: None,
+        },
+    )
+    .unwrap();
+    let out = tmp.path().join("run");
+    let s = run(&RunOptions {
+        sequence: seq.clone(),
+        out: out.clone(),
+        perturb: PerturbationSpec {
+            faults: vec!["foreign@60".parse().unwrap()],
+            ..Default::default()
+        },
+        ..Default::default()
+    })
+    .unwrap();
+    let faults = serde_json::to_value(&s.perturbations).unwrap()["faults"].clone();
+    assert_eq!(faults[0]["source"], 119, "the fault draw changed: {faults}");
+    let rgb = std::fs::read_to_string(seq.join("rgb.txt")).unwrap();
+    let stamps: Vec<&str> = rgb
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .map(|l| l.split_whitespace().next().unwrap())
+        .collect();
+    let trajectory = std::fs::read_to_string(out.join("trajectory.txt")).unwrap();
+    let posed = |i: usize| trajectory.lines().any(|l| l.starts_with(stamps[i]));
+    assert!(!posed(60), "the foreign frame 60 has a pose");
+    assert!(posed(59) && posed(61), "a real frame next to it lost its pose");
+    assert_eq!(s.maps, 1);
+    assert_eq!(s.frames_with_pose, s.frames - 1);
+}
