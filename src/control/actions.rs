@@ -1044,6 +1044,13 @@ impl StateMachine {
         self.flags.able_to_track = false;
         self.merger.poll(&mut self.atlas, true);
         let aliased_before = self.aliased.clone();
+        let standing_before: BTreeSet<PoolId> = self
+            .atlas
+            .pools
+            .iter()
+            .filter(|p| !p.rolled_back)
+            .map(|p| p.id)
+            .collect();
         let recovered = if let Some((map, kf)) = self.contradicting_kf.take() {
             self.contradicting_keyframes = 0;
             self.recover_from_keyframe(map, kf)
@@ -1052,8 +1059,19 @@ impl StateMachine {
         };
         self.cond.recovered = Some(recovered);
         if recovered {
-            let found: BTreeSet<KfId> = self.aliased.difference(&aliased_before).copied().collect();
-            self.undo_pools_anchored_at(&found);
+            // A wrong merge proves two separate places look alike, and other pools anchored
+            // there are suspect too. A wrong loop inside one map proves less: in a small scene
+            // every keyframe shares points with every other, and the cascade would undo every
+            // correct closure of the map (fr1_xyz with noise frames lost 70 % of its map).
+            let wrong_merge = standing_before.iter().any(|&p| {
+                let rec = &self.atlas.pools[p as usize];
+                rec.rolled_back && matches!(rec.kind, PoolKind::Merge { .. })
+            });
+            if wrong_merge {
+                let found: BTreeSet<KfId> =
+                    self.aliased.difference(&aliased_before).copied().collect();
+                self.undo_pools_anchored_at(&found);
+            }
             self.flags.consistent_map = true;
             self.suspects.clear();
             // When the newest pool was undone and its query map is back as it was, the camera
