@@ -475,12 +475,12 @@ fn open_sequence(
     Ok((Sequence::Mcap(Box::new(seq)), camera, source))
 }
 
-/// ATE/RPE against the sequence's ground truth, or a note why there is none.
 /// A stamp as the output files write it (microseconds), for matching stamps exactly.
 fn stamp_key(t: f64) -> u64 {
     (t * 1e6).round() as u64
 }
 
+/// ATE/RPE against the sequence's ground truth, or a note why there is none.
 fn evaluate(
     seq: &Sequence,
     est: &[StampedPose],

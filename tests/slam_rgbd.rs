@@ -2,6 +2,8 @@
 //! The accuracy target of the full-size sequence (ATE ≤ 0.5 cm) is measured by the benchmark
 //! commands in the README; this test guards against regressions at test-suite cost.
 
+mod common;
+
 use homing::system::{RunOptions, run};
 use homing_datasets::scenarios;
 use homing_datasets::sensor::SensorOptions;
@@ -134,19 +136,8 @@ fn two_runs_are_byte_identical() {
 fn a_map_started_from_a_false_frame_is_discarded() {
     use homing::io::perturb::{FaultKind, FaultRate, PerturbationSpec};
     let tmp = tempfile::tempdir().unwrap();
-    let sc = scenarios::build("desk", 1).unwrap();
     let seq = tmp.path().join("desk");
-    generate(
-        &sc,
-        &GenOptions {
-            out: seq.clone(),
-            small: true,
-            seed: 1,
-            sensor: SensorOptions::realistic(),
-            max_frames: None,
-        },
-    )
-    .unwrap();
+    common::synth_small("desk", &seq, None);
     let out = tmp.path().join("run");
     let s = run(&RunOptions {
         sequence: seq.clone(),
@@ -174,16 +165,7 @@ fn a_map_started_from_a_false_frame_is_discarded() {
     };
     assert_eq!(source_of(61), Some(15), "the fault draw changed: {faults}");
     assert_eq!(source_of(62), Some(137), "the fault draw changed: {faults}");
-    let rgb = std::fs::read_to_string(seq.join("rgb.txt")).unwrap();
-    let stamp62 = rgb
-        .lines()
-        .filter(|l| !l.starts_with('#'))
-        .nth(62)
-        .unwrap()
-        .split_whitespace()
-        .next()
-        .unwrap()
-        .to_string();
+    let stamp62 = stamps(&seq)[62].clone();
     for f in ["keyframes.txt", "trajectory.txt"] {
         let text = std::fs::read_to_string(out.join(f)).unwrap();
         assert!(
@@ -207,19 +189,8 @@ fn a_map_started_from_a_false_frame_is_discarded() {
 fn an_isolated_foreign_frame_is_refused_and_tracking_goes_on() {
     use homing::io::perturb::PerturbationSpec;
     let tmp = tempfile::tempdir().unwrap();
-    let sc = scenarios::build("desk", 1).unwrap();
     let seq = tmp.path().join("desk");
-    generate(
-        &sc,
-        &GenOptions {
-            out: seq.clone(),
-            small: true,
-            seed: 1,
-            sensor: SensorOptions::realistic(),
-            max_frames: None,
-        },
-    )
-    .unwrap();
+    common::synth_small("desk", &seq, None);
     let out = tmp.path().join("run");
     let s = run(&RunOptions {
         sequence: seq.clone(),
@@ -233,16 +204,21 @@ fn an_isolated_foreign_frame_is_refused_and_tracking_goes_on() {
     .unwrap();
     let faults = serde_json::to_value(&s.perturbations).unwrap()["faults"].clone();
     assert_eq!(faults[0]["source"], 119, "the fault draw changed: {faults}");
-    let rgb = std::fs::read_to_string(seq.join("rgb.txt")).unwrap();
-    let stamps: Vec<&str> = rgb
-        .lines()
-        .filter(|l| !l.starts_with('#'))
-        .map(|l| l.split_whitespace().next().unwrap())
-        .collect();
+    let stamps = stamps(&seq);
     let trajectory = std::fs::read_to_string(out.join("trajectory.txt")).unwrap();
-    let posed = |i: usize| trajectory.lines().any(|l| l.starts_with(stamps[i]));
+    let posed = |i: usize| trajectory.lines().any(|l| l.starts_with(&stamps[i]));
     assert!(!posed(60), "the foreign frame 60 has a pose");
     assert!(posed(59) && posed(61), "a real frame next to it lost its pose");
     assert_eq!(s.maps, 1);
     assert_eq!(s.frames_with_pose, s.frames - 1);
+}
+
+/// The image stamps of a TUM folder, as written (for finding a frame in the run's outputs).
+fn stamps(seq: &std::path::Path) -> Vec<String> {
+    std::fs::read_to_string(seq.join("rgb.txt"))
+        .unwrap()
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .map(|l| l.split_whitespace().next().unwrap().to_string())
+        .collect()
 }
