@@ -373,7 +373,14 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
         .collect();
 
     let evaluation = if opts.eval {
-        evaluate(&seq, &trajectory, &spec, &perturbed.plan, &closures, &pose_maps)?
+        evaluate(
+            &seq,
+            &trajectory,
+            &spec,
+            &perturbed.plan,
+            &closures,
+            &pose_maps,
+        )?
     } else {
         None
     };

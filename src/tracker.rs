@@ -189,10 +189,7 @@ impl Tracker {
             && self.refused_in_a_row < MAX_REFUSED_IN_A_ROW
         {
             let d = pose * predicted.inverse();
-            let (metres, degrees) = (
-                d.translation.vector.norm(),
-                d.rotation.angle().to_degrees(),
-            );
+            let (metres, degrees) = (d.translation.vector.norm(), d.rotation.angle().to_degrees());
             // The tolerances are for 30 Hz; lower frame rates move more between frames.
             let r = (self.velocity_dt * 30.0).max(1.0);
             if metres > r * self.cfg.max_jump_m || degrees > r * self.cfg.max_jump_deg {

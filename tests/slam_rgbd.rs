@@ -208,7 +208,10 @@ fn an_isolated_foreign_frame_is_refused_and_tracking_goes_on() {
     let trajectory = std::fs::read_to_string(out.join("trajectory.txt")).unwrap();
     let posed = |i: usize| trajectory.lines().any(|l| l.starts_with(&stamps[i]));
     assert!(!posed(60), "the foreign frame 60 has a pose");
-    assert!(posed(59) && posed(61), "a real frame next to it lost its pose");
+    assert!(
+        posed(59) && posed(61),
+        "a real frame next to it lost its pose"
+    );
     assert_eq!(s.maps, 1);
     assert_eq!(s.frames_with_pose, s.frames - 1);
 }
