@@ -135,25 +135,14 @@ fn two_runs_are_byte_identical() {
 #[test]
 fn a_map_started_from_a_false_frame_is_discarded() {
     use homing::io::perturb::{FaultKind, FaultRate, PerturbationSpec};
-    let tmp = tempfile::tempdir().unwrap();
-    let seq = tmp.path().join("desk");
-    common::synth_small("desk", &seq, None);
-    let out = tmp.path().join("run");
-    let s = run(&RunOptions {
-        sequence: seq.clone(),
-        out: out.clone(),
-        perturb: PerturbationSpec {
-            fault_rates: vec![FaultRate {
-                kind: FaultKind::Foreign,
-                p: 0.08,
-            }],
-            seed: 5,
-            ..Default::default()
-        },
-        eval: true,
+    let (_tmp, seq, out, s) = small_desk_with(PerturbationSpec {
+        fault_rates: vec![FaultRate {
+            kind: FaultKind::Foreign,
+            p: 0.08,
+        }],
+        seed: 5,
         ..Default::default()
-    })
-    .unwrap();
+    });
     let faults = serde_json::to_value(&s.perturbations).unwrap()["faults"].clone();
     let source_of = |frame: u64| {
         faults
@@ -188,20 +177,10 @@ fn a_map_started_from_a_false_frame_is_discarded() {
 #[test]
 fn an_isolated_foreign_frame_is_refused_and_tracking_goes_on() {
     use homing::io::perturb::PerturbationSpec;
-    let tmp = tempfile::tempdir().unwrap();
-    let seq = tmp.path().join("desk");
-    common::synth_small("desk", &seq, None);
-    let out = tmp.path().join("run");
-    let s = run(&RunOptions {
-        sequence: seq.clone(),
-        out: out.clone(),
-        perturb: PerturbationSpec {
-            faults: vec!["foreign@60".parse().unwrap()],
-            ..Default::default()
-        },
+    let (_tmp, seq, out, s) = small_desk_with(PerturbationSpec {
+        faults: vec!["foreign@60".parse().unwrap()],
         ..Default::default()
-    })
-    .unwrap();
+    });
     let faults = serde_json::to_value(&s.perturbations).unwrap()["faults"].clone();
     assert_eq!(faults[0]["source"], 119, "the fault draw changed: {faults}");
     let stamps = stamps(&seq);
@@ -224,4 +203,29 @@ fn stamps(seq: &std::path::Path) -> Vec<String> {
         .filter(|l| !l.starts_with('#'))
         .map(|l| l.split_whitespace().next().unwrap().to_string())
         .collect()
+}
+
+/// Runs the small `desk` (seed 1, every frame) under `perturb`, with evaluation; returns the
+/// temporary folder (kept alive), the sequence and output folders, and the summary.
+fn small_desk_with(
+    perturb: homing::io::perturb::PerturbationSpec,
+) -> (
+    tempfile::TempDir,
+    std::path::PathBuf,
+    std::path::PathBuf,
+    homing::output::Summary,
+) {
+    let tmp = tempfile::tempdir().unwrap();
+    let seq = tmp.path().join("desk");
+    common::synth_small("desk", &seq, None);
+    let out = tmp.path().join("run");
+    let s = run(&RunOptions {
+        sequence: seq.clone(),
+        out: out.clone(),
+        perturb,
+        eval: true,
+        ..Default::default()
+    })
+    .unwrap();
+    (tmp, seq, out, s)
 }
