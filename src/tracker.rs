@@ -70,7 +70,7 @@ pub struct Tracker {
 /// with 5 % foreign frames ended in 4 maps, its largest with 55 % of the frames, not 94 %.)
 const MAX_REFUSED_IN_A_ROW: usize = 1;
 
-/// Frame intervals of `interval` seconds in `dt` (at least 1; 1 when the interval is unknown).
+/// Frame intervals of `interval` seconds in `dt` (1 to 30; 1 when the interval is unknown).
 fn frame_intervals(dt: f64, interval: f64) -> usize {
     if interval <= 0.0 {
         return 1;

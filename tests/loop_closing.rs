@@ -65,16 +65,7 @@ fn loop_is_closed_and_corrects_the_drift() {
 
 #[test]
 fn aliasing_leaves_no_wrong_closure_standing() {
-    let tmp = tempfile::tempdir().unwrap();
-    let seq = tmp.path().join("aliasing");
-    common::synth_small("aliasing", &seq, None);
-    let s = run(&RunOptions {
-        sequence: seq,
-        out: tmp.path().join("run"),
-        eval: true,
-        ..Default::default()
-    })
-    .unwrap();
+    let s = common::run_small("aliasing", Default::default()).summary;
     let c = &s.evaluation.as_ref().unwrap()["closures"];
     // Room B looks exactly like room A: the detector does propose it...
     assert!(c["candidates_wrong"].as_u64().unwrap() >= 1, "{c}");
@@ -152,21 +143,14 @@ fn revisiting_keeps_the_map_bounded() {
 /// saw through them).
 #[test]
 fn aliasing_after_a_kidnapping_is_not_merged() {
-    let tmp = tempfile::tempdir().unwrap();
-    let seq = tmp.path().join("aliasing");
-    common::synth_small("aliasing", &seq, None);
-    let out = tmp.path().join("run");
-    let s = run(&RunOptions {
-        sequence: seq,
-        out: out.clone(),
-        eval: true,
-        perturb: homing::io::perturb::PerturbationSpec {
+    let run = common::run_small(
+        "aliasing",
+        homing::io::perturb::PerturbationSpec {
             drops: vec!["18.799s:19.799s".parse().unwrap()],
             ..Default::default()
         },
-        ..Default::default()
-    })
-    .unwrap();
+    );
+    let (out, s) = (&run.out, &run.summary);
     let c = &s.evaluation.as_ref().unwrap()["closures"];
     assert_eq!(c["accepted_wrong"].as_u64().unwrap(), 0, "{c}");
     let closures = std::fs::read_to_string(out.join("closures.csv")).unwrap();
@@ -184,14 +168,9 @@ fn aliasing_after_a_kidnapping_is_not_merged() {
 #[test]
 fn aliasing_with_isolated_false_frames_keeps_one_large_map() {
     use homing::io::perturb::{FaultKind, FaultRate, PerturbationSpec};
-    let tmp = tempfile::tempdir().unwrap();
-    let seq = tmp.path().join("aliasing");
-    common::synth_small("aliasing", &seq, None);
-    let s = run(&RunOptions {
-        sequence: seq,
-        out: tmp.path().join("run"),
-        eval: true,
-        perturb: PerturbationSpec {
+    let s = common::run_small(
+        "aliasing",
+        PerturbationSpec {
             fault_rates: vec![FaultRate {
                 kind: FaultKind::Noise,
                 p: 0.05,
@@ -199,9 +178,8 @@ fn aliasing_with_isolated_false_frames_keeps_one_large_map() {
             seed: 1,
             ..Default::default()
         },
-        ..Default::default()
-    })
-    .unwrap();
+    )
+    .summary;
     let ev = s.evaluation.as_ref().unwrap();
     let largest = ev["largest_map_coverage"].as_f64().unwrap();
     assert!(largest >= 0.55, "largest map coverage {largest}");

@@ -135,14 +135,18 @@ fn two_runs_are_byte_identical() {
 #[test]
 fn a_map_started_from_a_false_frame_is_discarded() {
     use homing::io::perturb::{FaultKind, FaultRate, PerturbationSpec};
-    let (_tmp, seq, out, s) = small_desk_with(PerturbationSpec {
-        fault_rates: vec![FaultRate {
-            kind: FaultKind::Foreign,
-            p: 0.08,
-        }],
-        seed: 5,
-        ..Default::default()
-    });
+    let run = common::run_small(
+        "desk",
+        PerturbationSpec {
+            fault_rates: vec![FaultRate {
+                kind: FaultKind::Foreign,
+                p: 0.08,
+            }],
+            seed: 5,
+            ..Default::default()
+        },
+    );
+    let (seq, out, s) = (&run.seq, &run.out, &run.summary);
     let faults = serde_json::to_value(&s.perturbations).unwrap()["faults"].clone();
     let source_of = |frame: u64| {
         faults
@@ -166,7 +170,7 @@ fn a_map_started_from_a_false_frame_is_discarded() {
     // The closures are judged by where their images were taken: a keyframe made from a
     // tracked foreign frame shows its source frame's view, and a closure to it is right when
     // it places the camera there (judged by the delivered stamp, this run had 2 "wrong").
-    let closures = &s.evaluation.unwrap()["closures"];
+    let closures = &s.evaluation.as_ref().unwrap()["closures"];
     assert!(closures["accepted"].as_u64().unwrap() >= 3, "{closures}");
     assert_eq!(closures["accepted_wrong"], 0, "{closures}");
 }
@@ -177,10 +181,14 @@ fn a_map_started_from_a_false_frame_is_discarded() {
 #[test]
 fn an_isolated_foreign_frame_is_refused_and_tracking_goes_on() {
     use homing::io::perturb::PerturbationSpec;
-    let (_tmp, seq, out, s) = small_desk_with(PerturbationSpec {
-        faults: vec!["foreign@60".parse().unwrap()],
-        ..Default::default()
-    });
+    let run = common::run_small(
+        "desk",
+        PerturbationSpec {
+            faults: vec!["foreign@60".parse().unwrap()],
+            ..Default::default()
+        },
+    );
+    let (seq, out, s) = (&run.seq, &run.out, &run.summary);
     let faults = serde_json::to_value(&s.perturbations).unwrap()["faults"].clone();
     assert_eq!(faults[0]["source"], 119, "the fault draw changed: {faults}");
     let stamps = stamps(&seq);
@@ -203,29 +211,4 @@ fn stamps(seq: &std::path::Path) -> Vec<String> {
         .filter(|l| !l.starts_with('#'))
         .map(|l| l.split_whitespace().next().unwrap().to_string())
         .collect()
-}
-
-/// Runs the small `desk` (seed 1, every frame) under `perturb`, with evaluation; returns the
-/// temporary folder (kept alive), the sequence and output folders, and the summary.
-fn small_desk_with(
-    perturb: homing::io::perturb::PerturbationSpec,
-) -> (
-    tempfile::TempDir,
-    std::path::PathBuf,
-    std::path::PathBuf,
-    homing::output::Summary,
-) {
-    let tmp = tempfile::tempdir().unwrap();
-    let seq = tmp.path().join("desk");
-    common::synth_small("desk", &seq, None);
-    let out = tmp.path().join("run");
-    let s = run(&RunOptions {
-        sequence: seq.clone(),
-        out: out.clone(),
-        perturb,
-        eval: true,
-        ..Default::default()
-    })
-    .unwrap();
-    (tmp, seq, out, s)
 }

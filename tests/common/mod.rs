@@ -118,3 +118,34 @@ pub fn synth_small(name: &str, dir: &Path, stride: Option<usize>) {
     };
     writer::generate(&sc, &opts).unwrap();
 }
+
+/// A run (with evaluation) of synthetic scenario `name` at its small size, under `perturb`.
+pub struct SmallRun {
+    /// Keeps the sequence and outputs alive.
+    pub tmp: tempfile::TempDir,
+    pub seq: PathBuf,
+    pub out: PathBuf,
+    pub summary: homing::output::Summary,
+}
+
+/// Generates scenario `name` small ([`synth_small`]) and runs it under `perturb`, with evaluation.
+pub fn run_small(name: &str, perturb: homing::io::perturb::PerturbationSpec) -> SmallRun {
+    let tmp = tempfile::tempdir().unwrap();
+    let seq = tmp.path().join(name);
+    synth_small(name, &seq, None);
+    let out = tmp.path().join("run");
+    let summary = homing::system::run(&homing::system::RunOptions {
+        sequence: seq.clone(),
+        out: out.clone(),
+        perturb,
+        eval: true,
+        ..Default::default()
+    })
+    .unwrap();
+    SmallRun {
+        tmp,
+        seq,
+        out,
+        summary,
+    }
+}
