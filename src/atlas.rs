@@ -16,7 +16,7 @@ use crate::geometry::Sim3;
 use crate::map::{KfId, Map, PointId};
 use nalgebra::{Isometry3, Matrix6, Translation3, UnitQuaternion};
 use serde::{Deserialize, Serialize};
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
 
 pub type MapId = u32;
@@ -154,6 +154,22 @@ impl PoolRecord {
     /// Whether this pool can still be undone in this session.
     pub fn undoable(&self) -> bool {
         !self.rolled_back && !self.undo.is_empty()
+    }
+
+    /// For a merge that can still be undone: the keyframes of map `into` and of map `from`
+    /// as they were before it. A wrong merge misplaces one side against the other, so the
+    /// contradictions it causes run across this seam.
+    pub fn merge_sides(&self) -> Option<(BTreeSet<KfId>, BTreeSet<KfId>)> {
+        let PoolKind::Merge { into, from, .. } = self.kind else {
+            return None;
+        };
+        let kfs = |id: MapId| {
+            self.undo
+                .iter()
+                .find(|m| m.id == id)
+                .map(|m| m.keyframes.keys().copied().collect())
+        };
+        Some((kfs(into)?, kfs(from)?))
     }
 }
 

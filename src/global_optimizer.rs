@@ -327,6 +327,7 @@ pub fn keyframe_depth_check(
     geo: &crate::preprocess::ImageGeometry,
     map: &Map,
     kf: KfId,
+    judge: impl Fn(&crate::map::MapPoint) -> bool,
 ) -> (usize, usize) {
     let Some(k) = map.keyframes.get(&kf) else {
         return (0, 0);
@@ -341,7 +342,7 @@ pub fn keyframe_depth_check(
         &k.pose_cw,
         map.points
             .values()
-            .filter(|p| !own.contains(&p.id) && !near.contains(&p.first_kf)),
+            .filter(|p| !own.contains(&p.id) && !near.contains(&p.first_kf) && judge(p)),
     )
 }
 
@@ -498,7 +499,7 @@ mod tests {
         let mut map = Map::new(0);
         add_wall_keyframe(&mut map, &geo, 0, 2.0);
         let new = add_wall_keyframe(&mut map, &geo, 1, 3.5);
-        let (judged, through) = keyframe_depth_check(&geo, &map, new);
+        let (judged, through) = keyframe_depth_check(&geo, &map, new, |_| true);
         assert!(judged >= 250, "judged {judged}");
         assert!(
             through as f64 > 0.9 * judged as f64,
@@ -509,7 +510,7 @@ mod tests {
         let mut map = Map::new(0);
         add_wall_keyframe(&mut map, &geo, 0, 2.0);
         let again = add_wall_keyframe(&mut map, &geo, 1, 2.05);
-        let (judged, through) = keyframe_depth_check(&geo, &map, again);
+        let (judged, through) = keyframe_depth_check(&geo, &map, again, |_| true);
         assert!(judged >= 250, "judged {judged}");
         assert_eq!(through, 0);
 
@@ -517,7 +518,7 @@ mod tests {
         let mut map = Map::new(0);
         add_wall_keyframe(&mut map, &geo, 0, 3.5);
         let nearer = add_wall_keyframe(&mut map, &geo, 1, 2.0);
-        assert_eq!(keyframe_depth_check(&geo, &map, nearer).1, 0);
+        assert_eq!(keyframe_depth_check(&geo, &map, nearer, |_| true).1, 0);
     }
 
     #[test]
@@ -531,6 +532,6 @@ mod tests {
             .unwrap()
             .covisibility
             .insert(old, 100);
-        assert_eq!(keyframe_depth_check(&geo, &map, new), (0, 0));
+        assert_eq!(keyframe_depth_check(&geo, &map, new, |_| true), (0, 0));
     }
 }

@@ -136,6 +136,25 @@ fn revisiting_keeps_the_map_bounded() {
     assert!(ate(&s) < 0.06, "ATE {} m", ate(&s));
 }
 
+/// A kidnapping just before the first lap of `revisit` closes (3 s dropped from 8.7 s): the
+/// new map merges into the first mid-lap, which leaves the first lap's loop open. Localized
+/// must not hold on that map's drifted copy of the lap's start: mapping resumes there, the loop
+/// detector closes the lap, and the depth check does not blame the (right) merge for the
+/// contradiction between the loop's two ends. Before, the lap stayed open: ATE 11 cm.
+#[test]
+fn a_kidnapping_before_the_loop_closes_leaves_no_open_loop() {
+    let perturb = homing::io::perturb::PerturbationSpec {
+        drops: vec!["8.733s:11.733s".parse().unwrap()],
+        ..Default::default()
+    };
+    let s = common::run_small("revisit", perturb).summary;
+    assert_eq!(s.maps, 1);
+    assert_eq!(s.pools_rolled_back, 0, "a right merge was rolled back");
+    let ev = s.evaluation.as_ref().unwrap();
+    assert_eq!(ev["closures"]["accepted_wrong"].as_u64().unwrap(), 0);
+    assert!(ate(&s) < 0.05, "ATE {} m", ate(&s));
+}
+
 /// Aliasing after a kidnapping: a 1 s drop as the camera enters room B leaves it in a new map
 /// with no odometry to room A, so the pose graph can never catch a wrong merge. Room B looks
 /// like room A, and the relocalization into A is proposed and pooled; the merge depth check

@@ -41,6 +41,9 @@ const LOOKALIKE_SHARED: f64 = 0.05;
 /// of the view by the map: width / 8.
 const EXPECTATION_CELLS_ACROSS: f64 = 32.0;
 const COVERAGE_CELLS_ACROSS: f64 = 8.0;
+/// Inlier points of the frame a nearby keyframe must hold for its viewpoint to count as
+/// known (see `known_viewpoint`).
+const KNOWN_VIEW_MIN_SHARED: usize = 20;
 
 impl StateMachine {
     /// The expectation check's measures for a tracked frame (see [`global_optimizer::expectation`]).
@@ -326,8 +329,7 @@ impl StateMachine {
             return;
         }
         let c = &self.cfg.controller;
-        let (judged, through) =
-            global_optimizer::keyframe_depth_check(&self.geo, &self.atlas.maps[&cur], kf);
+        let (judged, through) = self.depth_check_across_pools(cur, kf);
         let share = through as f64 / judged.max(1) as f64;
         tracing::debug!(
             "keyframe {kf}: depth check against map {cur}: {through} of {judged} points seen through ({share:.2})"
@@ -346,6 +348,41 @@ impl StateMachine {
             self.flags.consistent_map = false;
             self.suspects.clear();
         }
+    }
+
+    /// Keyframe `kf`'s depth check against the structure of map `map` that a standing pool
+    /// placed relative to it. A merge only moves the two merged maps against each other: a
+    /// contradiction between parts of one of them (the far ends of a loop it never closed,
+    /// apart by its drift) is not the merge's doing, and would condemn a right merge; so
+    /// across a merge only points first seen on the other side of its seam are judged. A loop
+    /// closure (or a merge whose side of `kf` cannot be told) bends its whole map: every point
+    /// is judged, as without any pool.
+    fn depth_check_across_pools(&self, map: MapId, kf: KfId) -> (usize, usize) {
+        let m = &self.atlas.maps[&map];
+        // Per standing merge: every keyframe's side of its seam, and `kf`'s; `None`: judge the
+        // whole map.
+        let seams: Option<Vec<_>> = self
+            .undoable_pools_of(map)
+            .into_iter()
+            .map(|p| {
+                let (a, b) = self.atlas.pools[p as usize].merge_sides()?;
+                let side = merge_side(m, kf, &a, &b)?;
+                let sides: BTreeMap<KfId, Option<bool>> = m
+                    .keyframes
+                    .keys()
+                    .map(|&k| (k, merge_side(m, k, &a, &b)))
+                    .collect();
+                Some((sides, side))
+            })
+            .collect();
+        let seams = seams.filter(|s| !s.is_empty());
+        global_optimizer::keyframe_depth_check(&self.geo, m, kf, |p| {
+            seams.as_ref().is_none_or(|seams| {
+                seams
+                    .iter()
+                    .any(|(sides, side)| sides.get(&p.first_kf).copied().flatten() != Some(*side))
+            })
+        })
     }
 
     /// Closure pools that touched map `map` and can still be undone, newest first.
@@ -936,7 +973,7 @@ impl StateMachine {
         let map = &self.atlas.maps[&cur];
         // Expectation: where the map predicts structure, the camera must see it.
         let e = self.expectation(map, m, &track);
-        let known_view = known_viewpoint(map, &track.pose_cw, &self.cfg.controller);
+        let known_view = known_viewpoint(map, &track, &self.cfg.controller);
         let pose = self.tracked(cur, &track, m);
         let ratio = e.ratio();
         tracing::debug!(
@@ -1199,8 +1236,7 @@ impl StateMachine {
             let Some(m) = self.atlas.map_of_keyframe(kf) else {
                 return true;
             };
-            let (judged, through) =
-                global_optimizer::keyframe_depth_check(&self.geo, &self.atlas.maps[&m], kf);
+            let (judged, through) = self.depth_check_across_pools(m, kf);
             if judged < min_judged || through as f64 / judged as f64 <= max_share {
                 return true;
             }
@@ -1445,18 +1481,65 @@ impl StateMachine {
     }
 }
 
-/// Whether a keyframe of `map` looks from about where the camera `pose_cw` is (see
-/// `ControllerConfig::known_view_distance_m`).
+/// Which side of a merge seam keyframe `kf` of `map` is on: `false` for the keyframes of the
+/// map merged into (`a`), `true` for the merged one's (`b`); a keyframe made after the merge
+/// sides with the one its covisible keyframes weigh most on. `None` when neither does.
+fn merge_side(
+    map: &crate::map::Map,
+    kf: KfId,
+    a: &BTreeSet<KfId>,
+    b: &BTreeSet<KfId>,
+) -> Option<bool> {
+    if a.contains(&kf) {
+        return Some(false);
+    }
+    if b.contains(&kf) {
+        return Some(true);
+    }
+    let k = map.keyframes.get(&kf)?;
+    let weight = |side: &BTreeSet<KfId>| -> u32 {
+        k.covisibility
+            .iter()
+            .filter(|(o, _)| side.contains(o))
+            .map(|(_, w)| *w)
+            .sum()
+    };
+    let (wa, wb) = (weight(a), weight(b));
+    (wa != wb).then_some(wb > wa)
+}
+
+/// Whether a keyframe of `map` looks from about where the tracked camera is (see
+/// `ControllerConfig::known_view_distance_m`) and the tracker re-observes it: at least
+/// `KNOWN_VIEW_MIN_SHARED` of the frame's inlier points are that keyframe's. A keyframe near
+/// here whose points the tracker does not find is a view the map holds elsewhere: the far end
+/// of a loop that was never closed (its drift puts a copy of this place out of the tracker's
+/// local map). That is not known space; mapping must resume so the loop detector can close it.
 fn known_viewpoint(
     map: &crate::map::Map,
-    pose_cw: &nalgebra::Isometry3<f64>,
+    track: &TrackResult,
     c: &crate::config::ControllerConfig,
 ) -> bool {
     let axis = |p: &nalgebra::Isometry3<f64>| p.rotation.inverse() * nalgebra::Vector3::z();
+    let pose_cw = &track.pose_cw;
     let (center, z) = (pose_cw.inverse().translation.vector, axis(pose_cw));
     let min_cos = c.known_view_angle_deg.to_radians().cos();
-    map.keyframes.values().any(|k| {
-        (k.center() - center).norm() <= c.known_view_distance_m
-            && axis(&k.pose_cw).dot(&z) >= min_cos
-    })
+    let near: Vec<KfId> = map
+        .keyframes
+        .values()
+        .filter(|k| {
+            (k.center() - center).norm() <= c.known_view_distance_m
+                && axis(&k.pose_cw).dot(&z) >= min_cos
+        })
+        .map(|k| k.id)
+        .collect();
+    if near.is_empty() {
+        return false;
+    }
+    let mut shared: BTreeMap<KfId, usize> = BTreeMap::new();
+    for p in track.matches.iter().flatten().filter_map(|id| map.points.get(id)) {
+        for kf in p.observations.keys().filter(|kf| near.contains(kf)) {
+            *shared.entry(*kf).or_default() += 1;
+        }
+    }
+    shared.values().any(|&n| n >= KNOWN_VIEW_MIN_SHARED)
 }
