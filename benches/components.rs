@@ -18,7 +18,6 @@ use homing::optim::{
     octave_information, solve,
 };
 use homing::preprocess::{ImageGeometry, Measurement, Preprocessor};
-use homing::system::VIRTUAL_BASELINE_M;
 use homing::tracker::Tracker;
 use homing_datasets::{scenarios, sensor::SensorOptions, writer};
 use nalgebra::{
@@ -74,7 +73,7 @@ fn images() -> Images {
         fy: camera.fy,
         cx: camera.cx,
         cy: camera.cy,
-        bf: camera.fx * VIRTUAL_BASELINE_M,
+        bf: camera.fx * camera.virtual_baseline_m,
     };
     Images {
         _dir: dir,

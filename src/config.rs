@@ -44,10 +44,20 @@ pub struct CameraConfig {
     /// ignoring it turns the skew of fast frames into centimetres of pose error.
     #[serde(default)]
     pub readout_s: f64,
+    /// How much a depth reading weighs in pose refinement and bundle adjustment: it enters as
+    /// the disparity of a virtual stereo pair with this baseline (ORB-SLAM's `Camera.bf` =
+    /// fx · baseline), with the keypoint's pixel σ; a larger baseline trusts depth more.
+    /// TUM's Kinects and the synthetic sensor: 0.08 m (ORB-SLAM's bf = 40); set it per sensor.
+    #[serde(default = "default_virtual_baseline")]
+    pub virtual_baseline_m: f64,
 }
 
 fn default_depth_scale() -> f64 {
     5000.0
+}
+/// ORB-SLAM's TUM setting (bf = 40 ≈ fx · 0.08 m).
+pub fn default_virtual_baseline() -> f64 {
+    0.08
 }
 fn default_fps() -> f64 {
     30.0
@@ -435,6 +445,7 @@ impl Config {
             c.pos("camera.depth_scale", cam.depth_scale);
             c.range("camera.fps", cam.fps, 0.1, 1000.0);
             c.range("camera.readout_s", cam.readout_s, 0.0, 1.0 / cam.fps);
+            c.range("camera.virtual_baseline_m", cam.virtual_baseline_m, 0.001, 10.0);
         }
         let s = &self.sequence;
         c.range(
@@ -818,6 +829,22 @@ mod tests {
         }
         assert_eq!(builtin_camera("freiburg2").unwrap().depth_scale, 5208.0);
         assert!(!builtin_camera("freiburg3").unwrap().has_distortion());
+        // TUM's Kinects keep ORB-SLAM's depth weight (bf = 40 at fx ≈ 517).
+        for (name, _) in BUILTIN_CAMERAS {
+            assert_eq!(builtin_camera(name).unwrap().virtual_baseline_m, 0.08);
+        }
+    }
+
+    #[test]
+    fn virtual_baseline_is_read_and_must_be_positive() {
+        let cam = "[camera]\nfx = 500\nfy = 500\ncx = 320\ncy = 240\nwidth = 640\nheight = 480\n";
+        let ok = Config::parse(&format!("{cam}virtual_baseline_m = 0.16\n"), Path::new("c.toml"));
+        assert_eq!(ok.unwrap().camera.unwrap().virtual_baseline_m, 0.16);
+        let err = Config::parse(&format!("{cam}virtual_baseline_m = 0\n"), Path::new("c.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(err.starts_with("c.toml:8:"), "{err}");
+        assert!(err.contains("camera.virtual_baseline_m"), "{err}");
     }
 
     #[test]

@@ -21,9 +21,6 @@ use crate::preprocess::Preprocessor;
 use nalgebra::Isometry3;
 use std::path::PathBuf;
 
-/// RGB-D observations are optimised like a stereo pair with this virtual baseline
-/// (ORB-SLAM's TUM setting, bf = 40 ≈ fx · 0.08 m).
-pub const VIRTUAL_BASELINE_M: f64 = 0.08;
 use std::time::Instant;
 
 /// What `homing run` is asked to do.
@@ -117,7 +114,7 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
         fy: camera.fy,
         cx: camera.cx,
         cy: camera.cy,
-        bf: camera.fx * VIRTUAL_BASELINE_M,
+        bf: camera.fx * camera.virtual_baseline_m,
     };
     let mut pre = Preprocessor::new(&camera, &config.orb)?;
     let mut viz = match &opts.rerun {

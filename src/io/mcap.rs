@@ -549,6 +549,7 @@ impl McapSequence {
                     depth_scale: self.depth_scale,
                     fps,
                     readout_s: 0.0,
+                    virtual_baseline_m: crate::config::default_virtual_baseline(),
                 },
                 format!("; fps {fps:.2} from the image stamps, global shutter"),
             ),
