@@ -445,7 +445,12 @@ impl Config {
             c.pos("camera.depth_scale", cam.depth_scale);
             c.range("camera.fps", cam.fps, 0.1, 1000.0);
             c.range("camera.readout_s", cam.readout_s, 0.0, 1.0 / cam.fps);
-            c.range("camera.virtual_baseline_m", cam.virtual_baseline_m, 0.001, 10.0);
+            c.range(
+                "camera.virtual_baseline_m",
+                cam.virtual_baseline_m,
+                0.001,
+                10.0,
+            );
         }
         let s = &self.sequence;
         c.range(
@@ -838,11 +843,17 @@ mod tests {
     #[test]
     fn virtual_baseline_is_read_and_must_be_positive() {
         let cam = "[camera]\nfx = 500\nfy = 500\ncx = 320\ncy = 240\nwidth = 640\nheight = 480\n";
-        let ok = Config::parse(&format!("{cam}virtual_baseline_m = 0.16\n"), Path::new("c.toml"));
+        let ok = Config::parse(
+            &format!("{cam}virtual_baseline_m = 0.16\n"),
+            Path::new("c.toml"),
+        );
         assert_eq!(ok.unwrap().camera.unwrap().virtual_baseline_m, 0.16);
-        let err = Config::parse(&format!("{cam}virtual_baseline_m = 0\n"), Path::new("c.toml"))
-            .unwrap_err()
-            .to_string();
+        let err = Config::parse(
+            &format!("{cam}virtual_baseline_m = 0\n"),
+            Path::new("c.toml"),
+        )
+        .unwrap_err()
+        .to_string();
         assert!(err.starts_with("c.toml:8:"), "{err}");
         assert!(err.contains("camera.virtual_baseline_m"), "{err}");
     }

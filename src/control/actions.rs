@@ -1536,7 +1536,12 @@ fn known_viewpoint(
         return false;
     }
     let mut shared: BTreeMap<KfId, usize> = BTreeMap::new();
-    for p in track.matches.iter().flatten().filter_map(|id| map.points.get(id)) {
+    for p in track
+        .matches
+        .iter()
+        .flatten()
+        .filter_map(|id| map.points.get(id))
+    {
         for kf in p.observations.keys().filter(|kf| near.contains(kf)) {
             *shared.entry(*kf).or_default() += 1;
         }
