@@ -20,7 +20,6 @@ use crate::output::{
 use crate::preprocess::Preprocessor;
 use nalgebra::Isometry3;
 use std::path::PathBuf;
-
 use std::time::Instant;
 
 /// What `homing run` is asked to do.

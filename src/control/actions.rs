@@ -366,12 +366,12 @@ impl StateMachine {
             .into_iter()
             .map(|p| {
                 let (a, b) = self.atlas.pools[p as usize].merge_sides()?;
-                let side = merge_side(m, kf, &a, &b)?;
                 let sides: BTreeMap<KfId, Option<bool>> = m
                     .keyframes
                     .keys()
                     .map(|&k| (k, merge_side(m, k, &a, &b)))
                     .collect();
+                let side = sides.get(&kf).copied().flatten()?;
                 Some((sides, side))
             })
             .collect();
