@@ -13,7 +13,7 @@ use crate::loop_validator::{
 use crate::map::KfId;
 use crate::output::{ClosureRow, Timing};
 use crate::preprocess::Measurement;
-use crate::tracker::TrackResult;
+use crate::tracker::{TrackMethod, TrackResult};
 use nalgebra::Isometry3;
 use std::collections::{BTreeMap, BTreeSet};
 
@@ -92,6 +92,7 @@ impl StateMachine {
 
     /// Entry activities.
     pub(super) fn enter(&mut self, s: State, m: &Measurement, timing: &mut Timing) {
+        self.map_retracked(s, m, timing);
         match s {
             State::Localized => self.localize(m, timing),
             State::CorruptedMap => self.cond.recovered = None,
@@ -158,7 +159,13 @@ impl StateMachine {
             self.track_inliers = Some(track.n_inliers);
             self.track_matched = track.matches.iter().map(Option::is_some).collect();
             if track.able_to_track {
-                return Some(self.tracked(cur, &track, m));
+                let pose = self.tracked(cur, &track, m);
+                // Found by the motion model, it continues the trajectory across the
+                // interruption (a false frame re-tracked by descriptors alone is not mapped).
+                if track.method == TrackMethod::MotionModel {
+                    self.retracked = Some(track);
+                }
+                return Some(pose);
             }
             self.tracker.lose();
         }
@@ -266,33 +273,10 @@ impl StateMachine {
         };
         let track = self.track_current(cur, m, timing)?;
         let mut pose = self.tracked(cur, &track, m);
-        let map = self.atlas.maps.get_mut(&cur).expect("current map exists");
-        let mut new_kf = None;
-        if self.merger.need_keyframe(map, m, &track, true) {
-            let r = timing.time("map", || self.merger.insert_keyframe(map, m, &track));
-            tracing::debug!(
-                "keyframe {} at frame {}: {} new points, {} fused, {} culled, BA {:.1} -> {:.1} ({} outliers)",
-                r.keyframe,
-                m.frame,
-                r.new_points,
-                r.fused,
-                r.culled,
-                r.ba_initial_cost,
-                r.ba_final_cost,
-                r.ba_outliers
-            );
-            self.tracker.reference_kf = Some(r.keyframe);
-            new_kf = Some(r.keyframe);
-            // The frame is that keyframe: it follows the keyframe's refined pose exactly.
-            pose = (Isometry3::identity(), cur, r.keyframe);
-        }
+        let new_kf = self.map_frame(cur, m, &track, scope, timing);
         if let Some(kf) = new_kf {
-            self.check_keyframe_depth(cur, kf);
-            if self.cfg.loop_closing.enabled {
-                timing.time("loop_closing", || self.close_loops(m, kf, scope));
-            } else {
-                self.detector.insert(kf as u64, &m.descriptors);
-            }
+            // The frame is that keyframe: it follows the keyframe's refined pose exactly.
+            pose = (Isometry3::identity(), cur, kf);
         }
         let lc = self.cfg.loop_closing.enabled;
         if recognize_known && lc && new_kf.is_none() && !self.flags.able_to_localize {
@@ -312,6 +296,62 @@ impl StateMachine {
             self.localize(m, timing);
         }
         Some(pose)
+    }
+
+    /// Mapping region on a tracked frame: the map merger's keyframe decision and insertion,
+    /// then the new keyframe's depth check and loop closing. Returns the new keyframe.
+    fn map_frame(
+        &mut self,
+        cur: MapId,
+        m: &Measurement,
+        track: &TrackResult,
+        scope: LoopScope,
+        timing: &mut Timing,
+    ) -> Option<KfId> {
+        let map = self.atlas.maps.get_mut(&cur).expect("current map exists");
+        if !self.merger.need_keyframe(map, m, track, true) {
+            return None;
+        }
+        let r = timing.time("map", || self.merger.insert_keyframe(map, m, track));
+        tracing::debug!(
+            "keyframe {} at frame {}: {} new points, {} fused, {} culled, BA {:.1} -> {:.1} ({} outliers)",
+            r.keyframe,
+            m.frame,
+            r.new_points,
+            r.fused,
+            r.culled,
+            r.ba_initial_cost,
+            r.ba_final_cost,
+            r.ba_outliers
+        );
+        let kf = r.keyframe;
+        self.tracker.reference_kf = Some(kf);
+        self.check_keyframe_depth(cur, kf);
+        if self.cfg.loop_closing.enabled {
+            timing.time("loop_closing", || self.close_loops(m, kf, scope));
+        } else {
+            self.detector.insert(kf as u64, &m.descriptors);
+        }
+        Some(kf)
+    }
+
+    /// Entry of a tracking-and-mapping state on the frame that Idle re-tracked in the current
+    /// map: that frame is mapped like any other. A short interruption (a false frame) in a
+    /// turn leaves the camera looking at little of the map; without a keyframe from the
+    /// re-tracked frame, the next one found too few points and a new map began (small
+    /// `aliasing` with 1 % black frames: that new map then merged into the look-alike room).
+    fn map_retracked(&mut self, s: State, m: &Measurement, timing: &mut Timing) {
+        let Some(track) = self.retracked.take() else {
+            return;
+        };
+        let (Some(cur), Activity::TrackAndMap { loop_scope, .. }) =
+            (self.current, self.spec.state(s).activity)
+        else {
+            return;
+        };
+        if let Some(kf) = self.map_frame(cur, m, &track, loop_scope, timing) {
+            self.entry_pose = Some((Isometry3::identity(), cur, kf));
+        }
     }
 
     /// Mapping region, each new keyframe (with depth, in a map that a closure pool changed):

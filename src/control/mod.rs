@@ -118,6 +118,10 @@ pub struct StateMachine {
     /// The tracker and its map as they were just before the newest pool was applied: when
     /// that pool is rolled back at once, tracking resumes there instead of in a new map.
     before_pool: Option<BeforePool>,
+    /// A frame Idle re-tracked in the current map, for the entered state's Mapping region
+    /// (see `map_retracked`); and the frame's pose when that made it a keyframe.
+    retracked: Option<crate::tracker::TrackResult>,
+    entry_pose: Option<actions::Pose>,
     /// Set when the machine stopped because the map is unusable.
     pub stop_reason: Option<String>,
     invalidated_from: Option<usize>,
@@ -171,6 +175,8 @@ impl StateMachine {
             pool_frames: Vec::new(),
             before_pool: None,
             stop_reason: None,
+            retracked: None,
+            entry_pose: None,
             invalidated_from: None,
             mono: config.sequence.mono,
             track_inliers: None,
@@ -225,6 +231,8 @@ impl StateMachine {
     /// Processes one measurement in the current state.
     pub fn step(&mut self, m: &Measurement, timing: &mut Timing) -> StepOutput {
         self.invalidated_from = None;
+        self.retracked = None;
+        self.entry_pose = None;
         self.track_inliers = None;
         self.track_matched.clear();
         let activity = self.spec.state(self.state).activity;
@@ -262,8 +270,11 @@ impl StateMachine {
         }
         // The frame's pose stands only if its keyframe is still in the atlas (a rollback may
         // have discarded it); a merge may have moved it to another map.
-        let pose =
-            pose.and_then(|(rel, _, kf)| self.atlas.map_of_keyframe(kf).map(|map| (rel, map, kf)));
+        let pose = self
+            .entry_pose
+            .take()
+            .or(pose)
+            .and_then(|(rel, _, kf)| self.atlas.map_of_keyframe(kf).map(|map| (rel, map, kf)));
         StepOutput {
             state: self.state_name(),
             transitions,

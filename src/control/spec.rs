@@ -285,7 +285,7 @@ fn ours() -> MachineSpec {
             st(
                 Core,
                 "Core",
-                "-",
+                "map the frame Idle re-tracked",
                 Activity::TrackAndMap {
                     loop_scope: LoopScope::CurrentMap,
                     relocalize: true,
