@@ -156,6 +156,11 @@ impl Tracker {
         if let Some((predicted, _)) = prediction {
             attempt = self.with_motion_model(m, map, predicted);
         }
+        if attempt.is_none()
+            && let Some((predicted, _)) = prediction
+        {
+            attempt = self.with_local_map_prediction(m, map, predicted);
+        }
         if attempt.is_none() {
             attempt = self.with_reference_keyframe(m, map);
         }
@@ -293,6 +298,41 @@ impl Tracker {
             }
         }
         None
+    }
+
+    /// The motion model's prediction with the local map's points instead of only the last
+    /// frame's: turning into little-mapped space, the last frame holds few points that stay in
+    /// view (after a false frame, the prediction spans two intervals), while the keyframes
+    /// around them hold more. Local keyframes as in [`Self::with_local_map`], seeded by the
+    /// last frame's points; the wider motion-model radius, since the pose is only predicted.
+    fn with_local_map_prediction(
+        &self,
+        m: &Measurement,
+        map: &Map,
+        predicted: Isometry3<f64>,
+    ) -> Option<(Isometry3<f64>, Vec<Option<PointId>>, TrackMethod)> {
+        let local_kfs = map.local_keyframes(self.last_matches.iter().map(|&(_, p)| p), 20);
+        let cand_ids: std::collections::BTreeSet<PointId> = local_kfs
+            .iter()
+            .flat_map(|kf| map.keyframes[kf].points.iter().flatten().copied())
+            .collect();
+        let cands: Vec<Candidate> = cand_ids
+            .iter()
+            .filter_map(|p| map.points.get(p).map(candidate))
+            .collect();
+        let mut matches = vec![None; m.len()];
+        let radius = 2.0 * self.cfg.search_radius_px;
+        let n = self.search_by_projection(m, &predicted, &cands, radius, &mut matches, None);
+        tracing::trace!(
+            "motion model with the local map: {} keyframes, {} candidates, {n} matches",
+            local_kfs.len(),
+            cands.len()
+        );
+        if n < 20 {
+            return None;
+        }
+        let (pose, matches, inl) = self.refine(m, map, &predicted, matches);
+        (inl >= 10).then_some((pose, matches, TrackMethod::MotionModel))
     }
 
     fn with_reference_keyframe(

@@ -231,3 +231,30 @@ fn a_false_frame_in_a_turn_keeps_tracking_in_the_same_map() {
     assert!(largest >= 0.95, "largest map coverage {largest}");
     assert_eq!(s.maps, 1);
 }
+
+/// With 5 % black frames (seed 1), a false frame in the turn at the end of room B comes
+/// right after one the motion model tracked from few points: across the two intervals the last
+/// frame's points mostly leave the view. The prediction with the local map's points keeps the
+/// camera in its map (measured: 1 map, 94 % of the frames, no wrong closure; with the last
+/// frame's points only, a new map began and merged into room A: 6 wrong closures).
+#[test]
+fn a_false_frame_after_a_weakly_tracked_one_keeps_the_map() {
+    use homing::io::perturb::{FaultKind, FaultRate, PerturbationSpec};
+    let s = common::run_small(
+        "aliasing",
+        PerturbationSpec {
+            fault_rates: vec![FaultRate {
+                kind: FaultKind::Black,
+                p: 0.05,
+            }],
+            seed: 1,
+            ..Default::default()
+        },
+    )
+    .summary;
+    let ev = s.evaluation.as_ref().unwrap();
+    let c = &ev["closures"];
+    assert_eq!(c["accepted_wrong"].as_u64().unwrap(), 0, "{c}");
+    let largest = ev["largest_map_coverage"].as_f64().unwrap();
+    assert!(largest >= 0.9, "largest map coverage {largest}");
+}
