@@ -179,6 +179,27 @@ fn aliasing_after_a_kidnapping_is_not_merged() {
     );
 }
 
+/// Small `aliasing` with false frames of `kind` at rate `p` (seed 1).
+fn aliasing_with_false_frames(
+    kind: homing::io::perturb::FaultKind,
+    p: f64,
+) -> homing::output::Summary {
+    use homing::io::perturb::{FaultRate, PerturbationSpec};
+    let spec = PerturbationSpec {
+        fault_rates: vec![FaultRate { kind, p }],
+        seed: 1,
+        ..Default::default()
+    };
+    common::run_small("aliasing", spec).summary
+}
+
+/// Accepted closures that are wrong, and the share of frames in the largest map.
+fn wrong_and_largest(s: &homing::output::Summary) -> (u64, f64) {
+    let ev = s.evaluation.as_ref().unwrap();
+    let wrong = ev["closures"]["accepted_wrong"].as_u64().unwrap();
+    (wrong, ev["largest_map_coverage"].as_f64().unwrap())
+}
+
 /// Isolated false frames (5 % noise images) cost only themselves: the tracker keeps its
 /// motion model across the missing frame, so the next real frame is tracked in the same map
 /// instead of starting a new one (which, in this look-alike world, has nothing to merge
@@ -186,21 +207,8 @@ fn aliasing_after_a_kidnapping_is_not_merged() {
 /// 0.32 when each false frame reset the motion model).
 #[test]
 fn aliasing_with_isolated_false_frames_keeps_one_large_map() {
-    use homing::io::perturb::{FaultKind, FaultRate, PerturbationSpec};
-    let s = common::run_small(
-        "aliasing",
-        PerturbationSpec {
-            fault_rates: vec![FaultRate {
-                kind: FaultKind::Noise,
-                p: 0.05,
-            }],
-            seed: 1,
-            ..Default::default()
-        },
-    )
-    .summary;
-    let ev = s.evaluation.as_ref().unwrap();
-    let largest = ev["largest_map_coverage"].as_f64().unwrap();
+    let s = aliasing_with_false_frames(homing::io::perturb::FaultKind::Noise, 0.05);
+    let (_, largest) = wrong_and_largest(&s);
     assert!(largest >= 0.55, "largest map coverage {largest}");
 }
 
@@ -211,23 +219,9 @@ fn aliasing_with_isolated_false_frames_keeps_one_large_map() {
 /// room A (3 wrong closures, ATE 3.0 m).
 #[test]
 fn a_false_frame_in_a_turn_keeps_tracking_in_the_same_map() {
-    use homing::io::perturb::{FaultKind, FaultRate, PerturbationSpec};
-    let s = common::run_small(
-        "aliasing",
-        PerturbationSpec {
-            fault_rates: vec![FaultRate {
-                kind: FaultKind::Black,
-                p: 0.01,
-            }],
-            seed: 1,
-            ..Default::default()
-        },
-    )
-    .summary;
-    let ev = s.evaluation.as_ref().unwrap();
-    let c = &ev["closures"];
-    assert_eq!(c["accepted_wrong"].as_u64().unwrap(), 0, "{c}");
-    let largest = ev["largest_map_coverage"].as_f64().unwrap();
+    let s = aliasing_with_false_frames(homing::io::perturb::FaultKind::Black, 0.01);
+    let (wrong, largest) = wrong_and_largest(&s);
+    assert_eq!(wrong, 0, "wrong closures");
     assert!(largest >= 0.95, "largest map coverage {largest}");
     assert_eq!(s.maps, 1);
 }
@@ -239,22 +233,8 @@ fn a_false_frame_in_a_turn_keeps_tracking_in_the_same_map() {
 /// frame's points only, a new map began and merged into room A: 6 wrong closures).
 #[test]
 fn a_false_frame_after_a_weakly_tracked_one_keeps_the_map() {
-    use homing::io::perturb::{FaultKind, FaultRate, PerturbationSpec};
-    let s = common::run_small(
-        "aliasing",
-        PerturbationSpec {
-            fault_rates: vec![FaultRate {
-                kind: FaultKind::Black,
-                p: 0.05,
-            }],
-            seed: 1,
-            ..Default::default()
-        },
-    )
-    .summary;
-    let ev = s.evaluation.as_ref().unwrap();
-    let c = &ev["closures"];
-    assert_eq!(c["accepted_wrong"].as_u64().unwrap(), 0, "{c}");
-    let largest = ev["largest_map_coverage"].as_f64().unwrap();
+    let s = aliasing_with_false_frames(homing::io::perturb::FaultKind::Black, 0.05);
+    let (wrong, largest) = wrong_and_largest(&s);
+    assert_eq!(wrong, 0, "wrong closures");
     assert!(largest >= 0.9, "largest map coverage {largest}");
 }
