@@ -203,13 +203,18 @@ fn wrong_and_largest(s: &homing::output::Summary) -> (u64, f64) {
 /// Isolated false frames (5 % noise images) cost only themselves: the tracker keeps its
 /// motion model across the missing frame, so the next real frame is tracked in the same map
 /// instead of starting a new one (which, in this look-alike world, has nothing to merge
-/// back with but room A). The largest map keeps well over half the frames (0.62 measured;
-/// 0.32 when each false frame reset the motion model).
+/// back with but room A). Two false frames in a row (frames 462 and 463, in room B): Idle
+/// cannot re-track the second and starts a map from it, which the next real frame loses at
+/// once and discards; tracking then resumes in the map they interrupted. Measured: 1 map,
+/// 94 % of the frames, none wrong (0.62 and 6 wrong closures when a third map began there,
+/// was refused by the interrupted map's depth check and merged into room A; 0.32 when each
+/// false frame reset the motion model).
 #[test]
 fn aliasing_with_isolated_false_frames_keeps_one_large_map() {
     let s = aliasing_with_false_frames(homing::io::perturb::FaultKind::Noise, 0.05);
-    let (_, largest) = wrong_and_largest(&s);
-    assert!(largest >= 0.55, "largest map coverage {largest}");
+    let (wrong, largest) = wrong_and_largest(&s);
+    assert_eq!(wrong, 0, "wrong closures");
+    assert!(largest >= 0.9, "largest map coverage {largest}");
 }
 
 /// A false frame in a turn (1 % black frames, seed 1: frame 537, camera turning in room B)

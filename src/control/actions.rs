@@ -45,6 +45,13 @@ const COVERAGE_CELLS_ACROSS: f64 = 8.0;
 /// known (see `known_viewpoint`).
 const KNOWN_VIEW_MIN_SHARED: usize = 20;
 
+/// Where tracking was before Idle started a map from a frame within the re-acquisition gap.
+pub(super) struct Resume {
+    map: MapId,
+    last_tracked_t: Option<f64>,
+    tracker: crate::tracker::Tracker,
+}
+
 impl StateMachine {
     /// The expectation check's measures for a tracked frame (see [`global_optimizer::expectation`]).
     fn expectation(
@@ -170,7 +177,18 @@ impl StateMachine {
             self.tracker.lose();
         }
         if new_map {
+            // Within the re-acquisition gap, this frame may be a second false one: if the map
+            // it starts is lost at once (discarded), tracking resumes where it was.
+            let resume = match (same_map, recent, self.current) {
+                (true, true, Some(map)) => Some(Resume {
+                    map,
+                    last_tracked_t: self.last_tracked_t,
+                    tracker: self.tracker.clone(),
+                }),
+                _ => None,
+            };
             let pose = self.start_new_map(m, timing)?;
+            self.resume = resume;
             self.flags.able_to_track = true;
             return Some(pose);
         }
@@ -241,6 +259,21 @@ impl StateMachine {
         self.founded = None;
         self.current = None;
         self.last_tracked_t = None;
+        // Started from a false frame within a short gap: back to the map it interrupted, so
+        // the next frame is re-tracked there instead of starting yet another map.
+        if let Some(r) = self.resume.take()
+            && self.atlas.maps.contains_key(&r.map)
+        {
+            tracing::info!(
+                "frame {}: tracking resumes in map {} after the discarded one",
+                m.frame,
+                r.map
+            );
+            self.current = Some(r.map);
+            self.atlas.activate(r.map);
+            self.last_tracked_t = r.last_tracked_t;
+            self.tracker = r.tracker;
+        }
     }
 
     /// Bookkeeping of a tracked frame; returns its pose.

@@ -121,6 +121,9 @@ pub struct StateMachine {
     /// A frame Idle re-tracked in the current map, for the entered state's Mapping region
     /// (see `map_retracked`); and the frame's pose when that made it a keyframe.
     retracked: Option<crate::tracker::TrackResult>,
+    /// Tracking before the newest map was started within a short gap (see
+    /// `discard_unconfirmed`).
+    resume: Option<actions::Resume>,
     entry_pose: Option<actions::Pose>,
     /// Set when the machine stopped because the map is unusable.
     pub stop_reason: Option<String>,
@@ -176,6 +179,7 @@ impl StateMachine {
             before_pool: None,
             stop_reason: None,
             retracked: None,
+            resume: None,
             entry_pose: None,
             invalidated_from: None,
             mono: config.sequence.mono,
