@@ -118,12 +118,12 @@ pub struct StateMachine {
     /// The tracker and its map as they were just before the newest pool was applied: when
     /// that pool is rolled back at once, tracking resumes there instead of in a new map.
     before_pool: Option<BeforePool>,
-    /// A frame Idle re-tracked in the current map, for the entered state's Mapping region
-    /// (see `map_retracked`); and the frame's pose when that made it a keyframe.
-    retracked: Option<crate::tracker::TrackResult>,
     /// Tracking before the newest map was started within a short gap (see
     /// `discard_unconfirmed`).
     resume: Option<actions::Resume>,
+    /// A frame Idle re-tracked in the current map, for the entered state's Mapping region
+    /// (see `map_retracked`); and the frame's pose when that made it a keyframe.
+    retracked: Option<crate::tracker::TrackResult>,
     entry_pose: Option<actions::Pose>,
     /// Set when the machine stopped because the map is unusable.
     pub stop_reason: Option<String>,
