@@ -311,15 +311,9 @@ impl Tracker {
         map: &Map,
         predicted: Isometry3<f64>,
     ) -> Option<(Isometry3<f64>, Vec<Option<PointId>>, TrackMethod)> {
-        let local_kfs = map.local_keyframes(self.last_matches.iter().map(|&(_, p)| p), 20);
-        let cand_ids: std::collections::BTreeSet<PointId> = local_kfs
-            .iter()
-            .flat_map(|kf| map.keyframes[kf].points.iter().flatten().copied())
-            .collect();
-        let cands: Vec<Candidate> = cand_ids
-            .iter()
-            .filter_map(|p| map.points.get(p).map(candidate))
-            .collect();
+        let seeds: std::collections::BTreeSet<PointId> =
+            self.last_matches.iter().map(|&(_, p)| p).collect();
+        let (local_kfs, cands) = local_map_candidates(map, &seeds, false);
         let mut matches = vec![None; m.len()];
         let radius = 2.0 * self.cfg.search_radius_px;
         let n = self.search_by_projection(m, &predicted, &cands, radius, &mut matches, None);
@@ -393,19 +387,7 @@ impl Tracker {
         mut matches: Vec<Option<PointId>>,
     ) -> (Isometry3<f64>, Vec<Option<PointId>>, usize, Vec<PointId>) {
         let seen: std::collections::BTreeSet<PointId> = matches.iter().flatten().copied().collect();
-        let local_kfs = map.local_keyframes(seen.iter().copied(), 20);
-        let mut cand_ids = std::collections::BTreeSet::new();
-        for kf in &local_kfs {
-            for pid in map.keyframes[kf].points.iter().flatten() {
-                if !seen.contains(pid) {
-                    cand_ids.insert(*pid);
-                }
-            }
-        }
-        let cands: Vec<Candidate> = cand_ids
-            .iter()
-            .filter_map(|p| map.points.get(p).map(candidate))
-            .collect();
+        let (local_kfs, cands) = local_map_candidates(map, &seen, true);
         let before = matches.iter().flatten().count();
         let mut visible: Vec<PointId> = seen.iter().copied().collect();
         let added = self.search_by_projection(
@@ -588,6 +570,27 @@ impl Tracker {
         }
         n
     }
+}
+
+/// The local map around the points `seeds` (their keyframes and best covisible ones, see
+/// [`Map::local_keyframes`]) and those keyframes' points as search candidates, without the
+/// seeds themselves when `skip_seeds` (already matched).
+fn local_map_candidates(
+    map: &Map,
+    seeds: &std::collections::BTreeSet<PointId>,
+    skip_seeds: bool,
+) -> (Vec<KfId>, Vec<Candidate>) {
+    let local_kfs = map.local_keyframes(seeds.iter().copied(), 20);
+    let cand_ids: std::collections::BTreeSet<PointId> = local_kfs
+        .iter()
+        .flat_map(|kf| map.keyframes[kf].points.iter().flatten().copied())
+        .filter(|p| !(skip_seeds && seeds.contains(p)))
+        .collect();
+    let cands = cand_ids
+        .iter()
+        .filter_map(|p| map.points.get(p).map(candidate))
+        .collect();
+    (local_kfs, cands)
 }
 
 fn candidate(p: &crate::map::MapPoint) -> Candidate {

@@ -45,14 +45,23 @@ const COVERAGE_CELLS_ACROSS: f64 = 8.0;
 /// known (see `known_viewpoint`).
 const KNOWN_VIEW_MIN_SHARED: usize = 20;
 
-/// Where tracking was before Idle started a map from a frame within the re-acquisition gap.
-pub(super) struct Resume {
-    map: MapId,
-    last_tracked_t: Option<f64>,
-    tracker: crate::tracker::Tracker,
-}
-
 impl StateMachine {
+    /// Where the tracker is now, if it has a map.
+    fn tracking_at(&self) -> Option<super::TrackingAt> {
+        self.current.map(|map| super::TrackingAt {
+            map,
+            tracker: self.tracker.clone(),
+            last_tracked_t: self.last_tracked_t,
+        })
+    }
+
+    /// Back to where the tracker was.
+    fn resume_tracking(&mut self, at: super::TrackingAt) {
+        self.tracker = at.tracker;
+        self.current = Some(at.map);
+        self.last_tracked_t = at.last_tracked_t;
+    }
+
     /// The expectation check's measures for a tracked frame (see [`global_optimizer::expectation`]).
     fn expectation(
         &self,
@@ -179,14 +188,7 @@ impl StateMachine {
         if new_map {
             // Within the re-acquisition gap, this frame may be a second false one: if the map
             // it starts is lost at once (discarded), tracking resumes where it was.
-            let resume = match (same_map, recent, self.current) {
-                (true, true, Some(map)) => Some(Resume {
-                    map,
-                    last_tracked_t: self.last_tracked_t,
-                    tracker: self.tracker.clone(),
-                }),
-                _ => None,
-            };
+            let resume = (same_map && recent).then(|| self.tracking_at()).flatten();
             let pose = self.start_new_map(m, timing)?;
             self.resume = resume;
             self.flags.able_to_track = true;
@@ -269,10 +271,8 @@ impl StateMachine {
                 m.frame,
                 r.map
             );
-            self.current = Some(r.map);
             self.atlas.activate(r.map);
-            self.last_tracked_t = r.last_tracked_t;
-            self.tracker = r.tracker;
+            self.resume_tracking(r);
         }
     }
 
@@ -884,12 +884,7 @@ impl StateMachine {
             }
         };
         let pool = self.atlas.begin_pool(kind, m.frame, m.t);
-        self.before_pool = self.current.map(|map| super::BeforePool {
-            pool,
-            map,
-            tracker: self.tracker.clone(),
-            last_tracked_t: self.last_tracked_t,
-        });
+        self.before_pool = self.tracking_at().map(|at| super::BeforePool { pool, at });
         for e in edges.iter_mut() {
             e.pool = pool;
         }
@@ -1198,11 +1193,9 @@ impl StateMachine {
                 Some(b)
                     if self.atlas.pools[b.pool as usize].rolled_back
                         && newest.is_none_or(|n| n < b.pool)
-                        && self.atlas.maps.contains_key(&b.map) =>
+                        && self.atlas.maps.contains_key(&b.at.map) =>
                 {
-                    self.tracker = b.tracker;
-                    self.current = Some(b.map);
-                    self.last_tracked_t = b.last_tracked_t;
+                    self.resume_tracking(b.at)
                 }
                 _ => {
                     self.tracker.lose();

@@ -49,13 +49,19 @@ pub struct TransitionTaken {
     pub flags: Flags,
 }
 
+/// Where the tracker was: its map, its state and the last tracked stamp (to return there).
+#[derive(Clone)]
+struct TrackingAt {
+    map: MapId,
+    tracker: Tracker,
+    last_tracked_t: Option<f64>,
+}
+
 /// See [`StateMachine::before_pool`].
 #[derive(Clone)]
 struct BeforePool {
     pool: u32,
-    map: MapId,
-    tracker: Tracker,
-    last_tracked_t: Option<f64>,
+    at: TrackingAt,
 }
 
 /// Internal conditions besides the paper's four flags.
@@ -120,7 +126,7 @@ pub struct StateMachine {
     before_pool: Option<BeforePool>,
     /// Tracking before the newest map was started within a short gap (see
     /// `discard_unconfirmed`).
-    resume: Option<actions::Resume>,
+    resume: Option<TrackingAt>,
     /// A frame Idle re-tracked in the current map, for the entered state's Mapping region
     /// (see `map_retracked`); and the frame's pose when that made it a keyframe.
     retracked: Option<crate::tracker::TrackResult>,
@@ -236,7 +242,6 @@ impl StateMachine {
     pub fn step(&mut self, m: &Measurement, timing: &mut Timing) -> StepOutput {
         self.invalidated_from = None;
         self.retracked = None;
-        self.entry_pose = None;
         self.track_inliers = None;
         self.track_matched.clear();
         let activity = self.spec.state(self.state).activity;
