@@ -193,11 +193,14 @@ fn aliasing_with_false_frames(
     common::run_small("aliasing", spec).summary
 }
 
-/// Accepted closures that are wrong, and the share of frames in the largest map.
-fn wrong_and_largest(s: &homing::output::Summary) -> (u64, f64) {
+/// Asserts no wrong closure was accepted and the largest map holds at least `min_largest` of
+/// the frames.
+fn assert_no_wrong_closure(s: &homing::output::Summary, min_largest: f64) {
     let ev = s.evaluation.as_ref().unwrap();
     let wrong = ev["closures"]["accepted_wrong"].as_u64().unwrap();
-    (wrong, ev["largest_map_coverage"].as_f64().unwrap())
+    assert_eq!(wrong, 0, "wrong closures");
+    let largest = ev["largest_map_coverage"].as_f64().unwrap();
+    assert!(largest >= min_largest, "largest map coverage {largest}");
 }
 
 /// Isolated false frames (5 % noise images) cost only themselves: the tracker keeps its
@@ -212,9 +215,7 @@ fn wrong_and_largest(s: &homing::output::Summary) -> (u64, f64) {
 #[test]
 fn aliasing_with_isolated_false_frames_keeps_one_large_map() {
     let s = aliasing_with_false_frames(homing::io::perturb::FaultKind::Noise, 0.05);
-    let (wrong, largest) = wrong_and_largest(&s);
-    assert_eq!(wrong, 0, "wrong closures");
-    assert!(largest >= 0.9, "largest map coverage {largest}");
+    assert_no_wrong_closure(&s, 0.9);
 }
 
 /// A false frame in a turn (1 % black frames, seed 1: frame 537, camera turning in room B)
@@ -225,9 +226,7 @@ fn aliasing_with_isolated_false_frames_keeps_one_large_map() {
 #[test]
 fn a_false_frame_in_a_turn_keeps_tracking_in_the_same_map() {
     let s = aliasing_with_false_frames(homing::io::perturb::FaultKind::Black, 0.01);
-    let (wrong, largest) = wrong_and_largest(&s);
-    assert_eq!(wrong, 0, "wrong closures");
-    assert!(largest >= 0.95, "largest map coverage {largest}");
+    assert_no_wrong_closure(&s, 0.95);
     assert_eq!(s.maps, 1);
 }
 
@@ -239,7 +238,5 @@ fn a_false_frame_in_a_turn_keeps_tracking_in_the_same_map() {
 #[test]
 fn a_false_frame_after_a_weakly_tracked_one_keeps_the_map() {
     let s = aliasing_with_false_frames(homing::io::perturb::FaultKind::Black, 0.05);
-    let (wrong, largest) = wrong_and_largest(&s);
-    assert_eq!(wrong, 0, "wrong closures");
-    assert!(largest >= 0.9, "largest map coverage {largest}");
+    assert_no_wrong_closure(&s, 0.9);
 }
