@@ -304,7 +304,16 @@ impl StateMachine {
             self.flags.able_to_track = false;
             return None;
         };
-        let track = self.track_current(cur, m, timing)?;
+        let Some(track) = self.track_current(cur, m, timing) else {
+            // The lost map was discarded and tracking resumed in the map it interrupted: this
+            // frame is the first real one after the false frames, so it is tracked there now —
+            // the next one may already be past the re-acquisition gap. (Once only: the resumed
+            // map was not just founded, so it is never discarded.)
+            if self.current.is_some_and(|r| r != cur) {
+                return self.track_and_map(m, scope, relocalize, recognize_known, timing);
+            }
+            return None;
+        };
         let mut pose = self.tracked(cur, &track, m);
         let new_kf = self.map_frame(cur, m, &track, scope, timing);
         if let Some(kf) = new_kf {
