@@ -1394,8 +1394,11 @@ impl StateMachine {
                 }
             }
             self.mark_aliased(u.pool);
-            if let Some((_, f)) = self.pool_frames.iter().find(|(q, _)| *q == u.pool) {
-                self.invalidated_from = Some(self.invalidated_from.map_or(*f, |x| x.min(*f)));
+            // Frames tracked after the pool was applied are placed by it; the pool's own frame
+            // was tracked before (relative to a keyframe the rollback restores) and stands.
+            if let Some(&(_, f)) = self.pool_frames.iter().find(|(q, _)| *q == u.pool) {
+                let after = f + 1;
+                self.invalidated_from = Some(self.invalidated_from.map_or(after, |x| x.min(after)));
             }
             for row in self.closures.iter_mut() {
                 if row.pool == Some(u.pool) {

@@ -245,10 +245,41 @@ impl StateMachine {
         self.track_inliers = None;
         self.track_matched.clear();
         let activity = self.spec.state(self.state).activity;
-        let pose = self.run_activity(activity, m, timing);
+        let mut pose = self.run_activity(activity, m, timing);
         let mut transitions = Vec::new();
-        // Follow guarded transitions until none holds (bounded: the tables have no cycle of
-        // guards that can all hold at once, but a bug must not hang a run).
+        self.follow_transitions(m, timing, &mut transitions);
+        // CorruptedMap's recovery does not look at the measurement: the state it leads to gets
+        // it (Idle re-tracks it where the camera was before the undone pool), so a recovery
+        // costs no frame its pose.
+        if activity == Activity::Recover && self.state != State::CorruptedMap {
+            let next = self.spec.state(self.state).activity;
+            pose = self.run_activity(next, m, timing);
+            self.follow_transitions(m, timing, &mut transitions);
+        }
+        // The frame's pose stands only if its keyframe is still in the atlas (a rollback may
+        // have discarded it); a merge may have moved it to another map.
+        let pose = self
+            .entry_pose
+            .take()
+            .or(pose)
+            .and_then(|(rel, _, kf)| self.atlas.map_of_keyframe(kf).map(|map| (rel, map, kf)));
+        StepOutput {
+            state: self.state_name(),
+            transitions,
+            flags: self.flags,
+            pose,
+            invalidated_from: self.invalidated_from,
+        }
+    }
+
+    /// Follows guarded transitions until none holds (bounded: the tables have no cycle of
+    /// guards that can all hold at once, but a bug must not hang a run).
+    fn follow_transitions(
+        &mut self,
+        m: &Measurement,
+        timing: &mut Timing,
+        transitions: &mut Vec<TransitionTaken>,
+    ) {
         for _ in 0..6 {
             let Some(t) = self
                 .spec
@@ -276,20 +307,6 @@ impl StateMachine {
                 },
                 flags: self.flags,
             });
-        }
-        // The frame's pose stands only if its keyframe is still in the atlas (a rollback may
-        // have discarded it); a merge may have moved it to another map.
-        let pose = self
-            .entry_pose
-            .take()
-            .or(pose)
-            .and_then(|(rel, _, kf)| self.atlas.map_of_keyframe(kf).map(|map| (rel, map, kf)));
-        StepOutput {
-            state: self.state_name(),
-            transitions,
-            flags: self.flags,
-            pose,
-            invalidated_from: self.invalidated_from,
         }
     }
 
