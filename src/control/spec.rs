@@ -47,7 +47,8 @@ pub enum Activity {
     },
     /// Localized: tracking in known space, no new keyframes, expectation check.
     TrackLocalized,
-    /// Corrupted map: undo the closure pool that explains the inconsistency.
+    /// Corrupted map: undo the closure pool that explains the inconsistency. It does not use
+    /// the measurement, so the state the recovery leads to runs on the same one.
     Recover,
     /// ORB-SLAM2 when lost: relocalize in the (single) map; the frame gets no pose otherwise.
     RelocalizeOnly,
