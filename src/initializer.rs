@@ -35,8 +35,8 @@ const MONO_MIN_KEYPOINTS: usize = 100;
 /// A reference older than this is replaced: the initializer may not have run for a while
 /// (tracking resumed in the meantime), and an old view would pair frames far apart in time.
 const MONO_MAX_REFERENCE_AGE_S: f64 = 2.0;
-/// Bins of the rotation-consistency histogram (ORB-SLAM's HISTO_LENGTH).
-
+/// The first local map of a new map: RGB-D, one frame with at least `min_points` key points
+/// with valid depth (up to `max_depth`); monocular, a two-view reconstruction (H or F).
 pub struct Initializer {
     pub min_points: usize,
     pub max_depth: f64,
