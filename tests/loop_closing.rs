@@ -185,8 +185,9 @@ fn aliasing_after_a_kidnapping_is_not_merged() {
     );
 }
 
-/// Small `aliasing` with false frames of `kind` at rate `p` (seed 1).
-fn aliasing_with_false_frames(
+/// Small `scenario` with false frames of `kind` at rate `p` (seed 1).
+fn with_false_frames(
+    scenario: &str,
     kind: homing::io::perturb::FaultKind,
     p: f64,
 ) -> homing::output::Summary {
@@ -196,7 +197,7 @@ fn aliasing_with_false_frames(
         seed: 1,
         ..Default::default()
     };
-    common::run_small("aliasing", spec).summary
+    common::run_small(scenario, spec).summary
 }
 
 /// Asserts no wrong closure was accepted and the largest map holds at least `min_largest` of
@@ -220,7 +221,7 @@ fn assert_no_wrong_closure(s: &homing::output::Summary, min_largest: f64) {
 /// false frame reset the motion model).
 #[test]
 fn aliasing_with_isolated_false_frames_keeps_one_large_map() {
-    let s = aliasing_with_false_frames(homing::io::perturb::FaultKind::Noise, 0.05);
+    let s = with_false_frames("aliasing", homing::io::perturb::FaultKind::Noise, 0.05);
     assert_no_wrong_closure(&s, 0.9);
 }
 
@@ -231,7 +232,7 @@ fn aliasing_with_isolated_false_frames_keeps_one_large_map() {
 /// room A (3 wrong closures, ATE 3.0 m).
 #[test]
 fn a_false_frame_in_a_turn_keeps_tracking_in_the_same_map() {
-    let s = aliasing_with_false_frames(homing::io::perturb::FaultKind::Black, 0.01);
+    let s = with_false_frames("aliasing", homing::io::perturb::FaultKind::Black, 0.01);
     assert_no_wrong_closure(&s, 0.95);
     assert_eq!(s.maps, 1);
 }
@@ -243,7 +244,7 @@ fn a_false_frame_in_a_turn_keeps_tracking_in_the_same_map() {
 /// frame's points only, a new map began and merged into room A: 6 wrong closures).
 #[test]
 fn a_false_frame_after_a_weakly_tracked_one_keeps_the_map() {
-    let s = aliasing_with_false_frames(homing::io::perturb::FaultKind::Black, 0.05);
+    let s = with_false_frames("aliasing", homing::io::perturb::FaultKind::Black, 0.05);
     assert_no_wrong_closure(&s, 0.9);
 }
 
@@ -257,16 +258,7 @@ fn a_false_frame_after_a_weakly_tracked_one_keeps_the_map() {
 /// largest (measured after: 1 map, 94 %, ATE 3.1 cm).
 #[test]
 fn two_false_frames_on_a_slow_sequence_keep_one_map() {
-    use homing::io::perturb::{FaultKind, FaultRate, PerturbationSpec};
-    let spec = PerturbationSpec {
-        fault_rates: vec![FaultRate {
-            kind: FaultKind::Noise,
-            p: 0.05,
-        }],
-        seed: 1,
-        ..Default::default()
-    };
-    let s = common::run_small("revisit", spec).summary;
+    let s = with_false_frames("revisit", homing::io::perturb::FaultKind::Noise, 0.05);
     assert_no_wrong_closure(&s, 0.9);
     assert_eq!(s.maps, 1);
     assert_eq!(s.pools_rolled_back, 0, "a right closure was rolled back");
