@@ -89,7 +89,10 @@ pub fn umeyama(x: &[Vector3<f64>], y: &[Vector3<f64>], with_scale: bool) -> Opti
     let mut sv = svd.singular_values;
     sv.as_mut_slice()
         .sort_by(|a, b| b.partial_cmp(a).unwrap_or(std::cmp::Ordering::Equal));
-    if !(sv[1] > 1e-12 * sv[0].max(1e-300)) || sigma_x <= 0.0 {
+    // Written negated on purpose: a NaN singular value must fail the check too.
+    #[allow(clippy::neg_cmp_op_on_partial_ord)]
+    let degenerate = !(sv[1] > 1e-12 * sv[0].max(1e-300));
+    if degenerate || sigma_x <= 0.0 {
         return None;
     }
     let r = u * s * v_t;

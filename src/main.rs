@@ -34,7 +34,7 @@ enum Cmd {
     /// Run on a TUM RGB-D folder and write the run outputs.
     ///
     /// Example: homing run --sequence data/rgbd_dataset_freiburg1_xyz --out out/fr1_xyz --eval
-    Run(RunArgs),
+    Run(Box<RunArgs>),
     /// Evaluate an estimated trajectory against ground truth (ATE, RPE, coverage).
     ///
     /// Example: homing eval --gt seq/groundtruth.txt --est out/trajectory.txt --plot ate.png
@@ -320,7 +320,7 @@ fn main() {
         .with_target(false)
         .init();
     let result = match cli.cmd {
-        Cmd::Run(a) => cmd_run(a, cli.quiet),
+        Cmd::Run(a) => cmd_run(*a, cli.quiet),
         Cmd::Report { dir, gt, out } => {
             homing::report::write_report(&dir, gt.as_deref(), out.as_deref())
                 .map(|p| println!("wrote {}", p.display()))

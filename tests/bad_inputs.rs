@@ -92,10 +92,13 @@ fn edit_line(path: &std::path::Path, n: usize, f: impl Fn(&str) -> String) {
     fs::write(path, lines.join("\n") + "\n").unwrap();
 }
 
+/// A broken-input case: its name, how it rewrites a line, and the message expected.
+type LineCase = (&'static str, Box<dyn Fn(&str) -> String>, &'static str);
+
 #[test]
 fn list_file_errors_name_file_and_line() {
     // rgb.txt: 2 comment lines, then frames from line 3.
-    let cases: [(&str, Box<dyn Fn(&str) -> String>, &str); 4] = [
+    let cases: [LineCase; 4] = [
         (
             "missing column",
             Box::new(|l: &str| l.split_whitespace().next().unwrap().to_string()),

@@ -158,7 +158,7 @@ fn a_map_started_from_a_false_frame_is_discarded() {
     };
     assert_eq!(source_of(61), Some(15), "the fault draw changed: {faults}");
     assert_eq!(source_of(62), Some(137), "the fault draw changed: {faults}");
-    let stamp62 = stamps(&seq)[62].clone();
+    let stamp62 = stamps(seq)[62].clone();
     for f in ["keyframes.txt", "trajectory.txt"] {
         let text = std::fs::read_to_string(out.join(f)).unwrap();
         assert!(
@@ -191,7 +191,7 @@ fn an_isolated_foreign_frame_is_refused_and_tracking_goes_on() {
     let (seq, out, s) = (&run.seq, &run.out, &run.summary);
     let faults = serde_json::to_value(&s.perturbations).unwrap()["faults"].clone();
     assert_eq!(faults[0]["source"], 119, "the fault draw changed: {faults}");
-    let stamps = stamps(&seq);
+    let stamps = stamps(seq);
     let trajectory = std::fs::read_to_string(out.join("trajectory.txt")).unwrap();
     let posed = |i: usize| trajectory.lines().any(|l| l.starts_with(&stamps[i]));
     assert!(!posed(60), "the foreign frame 60 has a pose");

@@ -94,20 +94,20 @@ pub fn compare(steps: &[ScenarioStep], rows: &[StateCsvRow], window: usize) -> V
             let lo = s.first_frame.saturating_sub(window);
             let hi = (s.last_frame + window).min(n.saturating_sub(1));
             let mut observed: Vec<String> = Vec::new();
-            for f in lo..=hi {
-                for st in &per[f] {
-                    if observed.last() != Some(st) {
-                        observed.push(st.clone());
-                    }
+            for st in per[lo..=hi].iter().flatten() {
+                if observed.last() != Some(st) {
+                    observed.push(st.clone());
                 }
             }
             let mut counts: Vec<(String, usize)> = Vec::new();
-            for f in s.first_frame..=s.last_frame.min(n.saturating_sub(1)) {
-                if let Some(st) = per[f].last() {
-                    match counts.iter_mut().find(|(k, _)| k == st) {
-                        Some((_, c)) => *c += 1,
-                        None => counts.push((st.clone(), 1)),
-                    }
+            let last = s.last_frame.min(n.saturating_sub(1));
+            for st in per[s.first_frame.min(last + 1)..=last]
+                .iter()
+                .filter_map(|f| f.last())
+            {
+                match counts.iter_mut().find(|(k, _)| k == st) {
+                    Some((_, c)) => *c += 1,
+                    None => counts.push((st.clone(), 1)),
                 }
             }
             let dominant = counts

@@ -419,9 +419,11 @@ fn detector_finds_the_revisited_keyframe_and_respects_exclusion() {
 
 #[test]
 fn params_come_from_the_config() {
-    let mut c = LoopClosingConfig::default();
-    c.self_similarity_filter = true;
-    c.min_score = 0.2;
+    let c = LoopClosingConfig {
+        self_similarity_filter: true,
+        min_score: 0.2,
+        ..Default::default()
+    };
     let p = LoopDetectorParams::from_config(&c);
     assert_eq!(p.min_score, 0.2);
     assert_eq!(p.hbst.max_leaf_size, c.hbst_max_leaf_size as usize);

@@ -26,6 +26,9 @@ use faer::sparse::{SparseColMat, Triplet};
 use nalgebra::{DMatrix, DVector, Isometry3, SMatrix, SVector, Vector6};
 use std::collections::BTreeMap;
 
+/// The normal matrix as dof×dof blocks of its upper triangle, keyed by (row, column) variable.
+type BlockHessian = BTreeMap<(usize, usize), DMatrix<f64>>;
+
 pub type Vector7 = SVector<f64, 7>;
 pub type Matrix7 = SMatrix<f64, 7, 7>;
 
@@ -251,9 +254,9 @@ impl PoseGraph {
         var_of: &[Option<usize>],
         n_var: usize,
         phi: f64,
-    ) -> (BTreeMap<(usize, usize), DMatrix<f64>>, DVector<f64>) {
+    ) -> (BlockHessian, DVector<f64>) {
         let dof = self.dof();
-        let mut h: BTreeMap<(usize, usize), DMatrix<f64>> = BTreeMap::new();
+        let mut h: BlockHessian = BTreeMap::new();
         let mut b = DVector::zeros(dof * n_var);
         for e in &self.edges {
             let (vi, vj) = (var_of[e.i], var_of[e.j]);
@@ -329,7 +332,7 @@ impl PoseGraph {
 /// Solves `(H + λ·diag(H)) δ = −b` with faer's sparse Cholesky. `None` when not positive
 /// definite.
 fn solve_damped(
-    h: &BTreeMap<(usize, usize), DMatrix<f64>>,
+    h: &BlockHessian,
     b: &DVector<f64>,
     n_var: usize,
     dof: usize,
