@@ -158,6 +158,11 @@ pub struct MappingConfig {
     /// Iterations of each of the two passes of the full BA the Final state runs over every
     /// map (0 = none).
     pub final_ba_iterations: u32,
+    /// The Final full BA also holds tracked frames as cameras, one per this many seconds of
+    /// each map's frames (0 = keyframes only); every other tracked frame is then re-placed on
+    /// the refined map by a motion-only BA. Localized makes no keyframes in known space, so
+    /// without the frames the map keeps the precision of its first visit.
+    pub final_ba_frame_interval_s: f64,
 }
 
 impl Default for MappingConfig {
@@ -170,6 +175,7 @@ impl Default for MappingConfig {
             local_ba_iterations: 10,
             local_ba_window: 10,
             final_ba_iterations: 10,
+            final_ba_frame_interval_s: 0.2,
         }
     }
 }
@@ -531,6 +537,12 @@ impl Config {
             m.final_ba_iterations as f64,
             0.0,
             1000.0,
+        );
+        c.range(
+            "mapping.final_ba_frame_interval_s",
+            m.final_ba_frame_interval_s,
+            0.0,
+            3600.0,
         );
         let l = &self.loop_closing;
         c.range(

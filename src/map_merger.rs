@@ -598,25 +598,10 @@ impl MapMerger {
         }
     }
 
-    /// Full BA over every keyframe of the map (the first one fixed for the gauge): the batch
-    /// refinement of the Final state.
+    /// Full BA over every keyframe of the map (the first one fixed for the gauge), as after a
+    /// consistent closure; Final's batch refinement adds frames ([`Self::global_ba_with_frames`]).
     pub fn global_ba(&self, map: &mut Map) -> Option<optim::BaReport> {
-        let iterations = self.cfg.final_ba_iterations as usize;
-        if iterations == 0 || map.keyframes.len() < 2 {
-            return None;
-        }
-        let mut all: Vec<KfId> = map.keyframes.keys().copied().collect();
-        self.fix_scale_gauge(map, &mut all);
-        let first = BaParams {
-            iterations,
-            ..Default::default()
-        };
-        let second = BaParams {
-            iterations,
-            huber: false,
-            ..Default::default()
-        };
-        bundle_adjust(map, &self.geo, &all, &first, &second)
+        self.global_ba_with_frames(map, &[]).map(|(r, _)| r)
     }
 }
 
@@ -750,7 +735,10 @@ pub fn apply_ba<'a>(
     }
     // Drop outlier observations; points left with none disappear.
     for &o in &r.outliers {
-        let (pid, k) = obs_ref[o];
+        // Observations past the keyframes' are extra cameras' (see `global_ba_with_frames`).
+        let Some(&(pid, k)) = obs_ref.get(o) else {
+            continue;
+        };
         let Some(p) = map.points.get_mut(&pid) else {
             continue;
         };
@@ -867,4 +855,185 @@ fn match_for_triangulation(
     let keep = dominant_rotation_bins(pairs.iter().map(bin));
     pairs.retain(|x| keep.contains(&bin(x)));
     pairs
+}
+
+/// A tracked frame's inlier observations, kept for the Final state's batch refinement: frames
+/// tracked in Localized (no keyframes there, by design) and between keyframes still see the
+/// map's points from other places, and the full BA uses them as extra cameras.
+#[derive(Debug, Clone)]
+pub struct FrameObservations {
+    pub frame: usize,
+    pub t: f64,
+    /// The keyframe the frame's pose is kept relative to, and that pose (`T_cw · T_kw⁻¹`).
+    pub kf: KfId,
+    pub rel: Isometry3<f64>,
+    /// Camera velocity (rolling shutter).
+    pub twist: nalgebra::Vector6<f64>,
+    /// (point, undistorted keypoint, depth (0 = none), octave, raw row).
+    pub obs: Vec<(PointId, Vector2<f64>, f32, u8, f32)>,
+}
+
+impl FrameObservations {
+    pub fn new(m: &Measurement, track: &TrackResult) -> Self {
+        let obs = track
+            .matches
+            .iter()
+            .enumerate()
+            .filter_map(|(i, p)| {
+                let p = (*p)?;
+                let kp = &m.keypoints[i];
+                Some((p, kp.un, m.depth[i], kp.octave, kp.raw.y as f32))
+            })
+            .collect();
+        Self {
+            frame: m.frame,
+            t: m.t,
+            kf: 0,
+            rel: Isometry3::identity(),
+            twist: track.twist,
+            obs,
+        }
+    }
+}
+
+impl MapMerger {
+    /// Final's batch refinement with frames: a full BA over every keyframe and point of the
+    /// map plus the given frames as free cameras, each first placed on the map as it is (see
+    /// [`Self::place_frame`]) so that it starts consistent and brings only its inliers.
+    /// Returns the BA report and the refined frame poses (`T_cw`).
+    pub fn global_ba_with_frames(
+        &self,
+        map: &mut Map,
+        frames: &[&FrameObservations],
+    ) -> Option<(optim::BaReport, Vec<(usize, Isometry3<f64>)>)> {
+        let iterations = self.cfg.final_ba_iterations as usize;
+        if iterations == 0 || map.keyframes.len() < 2 {
+            return None;
+        }
+        let mut free: Vec<KfId> = map.keyframes.keys().copied().collect();
+        self.fix_scale_gauge(map, &mut free);
+        // With frames, every camera starts placed on the map, so the solve stops once a step
+        // gains less than a millionth of the cost instead of running all its iterations.
+        let tol = if frames.is_empty() {
+            BaParams::default().relative_tolerance
+        } else {
+            1e-6
+        };
+        let first = BaParams {
+            iterations,
+            relative_tolerance: tol,
+            ..Default::default()
+        };
+        let second = BaParams {
+            iterations,
+            huber: false,
+            relative_tolerance: tol,
+            ..Default::default()
+        };
+        let kf = free.iter().copied().max()?;
+        let placed: Vec<(usize, Isometry3<f64>, Vec<(PointId, BaObservation)>)> = frames
+            .iter()
+            .filter_map(|f| {
+                let (pose, obs) = self.place_frame(map, f)?;
+                Some((f.frame, pose, obs))
+            })
+            .collect();
+        let mut job = prepare_ba(map, &self.geo, &free, kf, &first, &second)?;
+        let n_kf_cams = job.problem.keyframes.len();
+        let pt_index: BTreeMap<PointId, usize> =
+            job.pts.iter().enumerate().map(|(i, p)| (*p, i)).collect();
+        let mut used = Vec::new();
+        for (frame, pose_cw, obs) in placed {
+            let camera = job.problem.keyframes.len();
+            let before = job.problem.observations.len();
+            for (pid, o) in obs {
+                if let Some(&point) = pt_index.get(&pid) {
+                    job.problem
+                        .observations
+                        .push(BaObservation { camera, point, ..o });
+                }
+            }
+            if job.problem.observations.len() > before {
+                job.problem.keyframes.push(BaCamera {
+                    pose_cw,
+                    fixed: false,
+                });
+                used.push(frame);
+            }
+        }
+        let done = job.solve();
+        let r = apply_ba(map, &self.geo, &done)?.clone();
+        let poses = used
+            .into_iter()
+            .zip(&done.job.problem.keyframes[n_kf_cams..])
+            .map(|(f, c)| (f, c.pose_cw))
+            .collect();
+        Some((r, poses))
+    }
+
+    /// Places frame `f` on the map as it now is: a motion-only BA of its stored observations
+    /// of the points still in the map, from its pose relative to its keyframe. Returns the
+    /// pose (`T_cw`) and the inlier observations (camera and point indices left 0), or `None`
+    /// when too few inliers remain (the frame then keeps its pose relative to its keyframe).
+    pub fn place_frame(
+        &self,
+        map: &Map,
+        f: &FrameObservations,
+    ) -> Option<(Isometry3<f64>, Vec<(PointId, BaObservation)>)> {
+        // The frame was tracked and starts near its place: one robust round and one plain
+        // one, each of a few iterations, are enough (the tracker's four rounds of ten start
+        // from a prediction).
+        let params = crate::optim::PoseParams {
+            rounds: 2,
+            iterations_per_round: 5,
+            robust_rounds: 1,
+            ..Default::default()
+        };
+        let k = map.keyframes.get(&f.kf)?;
+        let (ids, obs): (Vec<PointId>, Vec<crate::optim::PoseObservation>) = f
+            .obs
+            .iter()
+            .filter_map(|&(pid, uv, depth, octave, y)| {
+                let p = map.points.get(&pid)?;
+                let d = depth as f64;
+                Some((
+                    pid,
+                    crate::optim::PoseObservation {
+                        point_w: p.position,
+                        obs: if d > 0.0 {
+                            Observation::Rgbd { uv, depth: d }
+                        } else {
+                            Observation::Mono { uv }
+                        },
+                        info: octave_information(octave as u32),
+                        shutter: self.geo.shutter(&f.twist, y as f64),
+                    },
+                ))
+            })
+            .unzip();
+        let r =
+            crate::optim::refine_pose(&k.pose_from_relative(&f.rel), &obs, &self.geo.intr, &params);
+        if r.n_inliers < params.min_inliers_to_continue {
+            return None;
+        }
+        let inliers = ids
+            .into_iter()
+            .zip(obs)
+            .zip(&r.inliers)
+            .filter(|(_, inlier)| **inlier)
+            .map(|((pid, o), _)| {
+                (
+                    pid,
+                    BaObservation {
+                        camera: 0,
+                        point: 0,
+                        obs: o.obs,
+                        info: o.info,
+                        shutter: o.shutter,
+                    },
+                )
+            })
+            .collect();
+        Some((r.pose, inliers))
+    }
 }

@@ -316,6 +316,12 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
             poses_discarded += 1;
             continue;
         };
+        // Final's batch refinement may have re-estimated the frame.
+        let rel = machine
+            .refined_frames
+            .get(frame)
+            .filter(|(k, _)| k == kf)
+            .map_or(rel, |(_, r)| r);
         let pose_wc = k.pose_from_relative(rel).inverse();
         frame_map.insert(*frame, *map);
         pose_maps.push((*t, *map));

@@ -282,6 +282,7 @@ impl StateMachine {
         self.last_tracked_t = Some(m.t);
         let map = self.atlas.maps.get_mut(&cur).expect("current map exists");
         self.merger.note_tracked(map, track);
+        self.pending_obs = Some(crate::map_merger::FrameObservations::new(m, track));
         let kf = track
             .reference_kf
             .or(self.tracker.reference_kf)
@@ -1482,25 +1483,82 @@ impl StateMachine {
         None
     }
 
-    /// Final's entry: batch refinement of every map (full BA).
+    /// Final's entry: batch refinement of every map: a full BA over its keyframes and points,
+    /// with tracked frames as extra cameras (one per `final_ba_frame_interval_s`), then every
+    /// other tracked frame re-placed on the refined map (see `MapMerger::place_frame`).
     pub(super) fn final_refinement(&mut self, timing: &mut Timing) {
         for ms in self.merger.poll(&mut self.atlas, true) {
             timing.record("local_ba_thread", ms);
         }
+        let interval = self.cfg.mapping.final_ba_frame_interval_s;
         let ids: Vec<MapId> = self.atlas.maps.keys().copied().collect();
         for id in ids {
             let map = self.atlas.maps.get_mut(&id).expect("listed");
-            if let Some(r) = timing.time("final_ba", || self.merger.global_ba(map)) {
-                tracing::info!(
-                    "final BA of map {id}: {} keyframes, cost {:.1} -> {:.1}, {} outlier observations",
-                    map.keyframes.len(),
-                    r.initial_cost,
-                    r.final_cost,
-                    r.outliers.len()
-                );
+            let (cameras, rest) = if interval > 0.0 {
+                select_frames(map, &self.frame_obs, interval)
+            } else {
+                (Vec::new(), Vec::new())
+            };
+            let Some((r, poses)) = timing.time("final_ba", || {
+                self.merger.global_ba_with_frames(map, &cameras)
+            }) else {
+                continue;
+            };
+            tracing::info!(
+                "final BA of map {id}: {} keyframes and {} frames, cost {:.1} -> {:.1} in {} iterations, {} outlier observations",
+                map.keyframes.len(),
+                poses.len(),
+                r.initial_cost,
+                r.final_cost,
+                r.iterations,
+                r.outliers.len()
+            );
+            if interval <= 0.0 {
+                continue;
+            }
+            let placed: Vec<(usize, nalgebra::Isometry3<f64>)> =
+                timing.time("final_frames", || {
+                    rest.iter()
+                        .filter_map(|f| Some((f.frame, self.merger.place_frame(map, f)?.0)))
+                        .collect()
+                });
+            for (f, pose_cw) in poses.into_iter().chain(placed) {
+                let kf = self.frame_obs[&f].kf;
+                if let Some(k) = map.keyframes.get(&kf) {
+                    self.refined_frames.insert(f, (kf, k.relative_of(&pose_cw)));
+                }
             }
         }
     }
+}
+
+/// The tracked frames of `map` for the Final BA: the cameras (the first frame, then the first
+/// one at least `interval` seconds after the last chosen; frames that became keyframes are
+/// cameras already and left out), and the rest, to be re-placed on the refined map.
+fn select_frames<'a>(
+    map: &crate::map::Map,
+    frames: &'a BTreeMap<usize, crate::map_merger::FrameObservations>,
+    interval: f64,
+) -> (
+    Vec<&'a crate::map_merger::FrameObservations>,
+    Vec<&'a crate::map_merger::FrameObservations>,
+) {
+    let kf_stamps: BTreeSet<u64> = map.keyframes.values().map(|k| k.t.to_bits()).collect();
+    let mut cameras = Vec::new();
+    let mut rest = Vec::new();
+    let mut last: Option<f64> = None;
+    for f in frames
+        .values()
+        .filter(|f| map.keyframes.contains_key(&f.kf) && !kf_stamps.contains(&f.t.to_bits()))
+    {
+        if last.is_none_or(|l| f.t - l >= interval) {
+            last = Some(f.t);
+            cameras.push(f);
+        } else {
+            rest.push(f);
+        }
+    }
+    (cameras, rest)
 }
 impl StateMachine {
     /// The global optimizer on map `map` with its standing closure edges; a full BA follows
@@ -1625,4 +1683,48 @@ fn known_viewpoint(
         }
     }
     shared.values().any(|&n| n >= KNOWN_VIEW_MIN_SHARED)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::select_frames;
+    use crate::map::Map;
+    use crate::map_merger::FrameObservations;
+    use crate::preprocess::Measurement;
+    use nalgebra::{Isometry3, Vector2, Vector6};
+    use std::collections::BTreeMap;
+
+    fn frame(i: usize, kf: crate::map::KfId) -> FrameObservations {
+        FrameObservations {
+            frame: i,
+            t: i as f64 * 0.25,
+            kf,
+            rel: Isometry3::identity(),
+            twist: Vector6::zeros(),
+            obs: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn final_ba_cameras_are_spaced_in_time_and_skip_keyframes() {
+        let mut map = Map::new(0);
+        // Keyframes made from the frames at 0 s and 1 s.
+        let kf0 = map.add_keyframe(
+            &Measurement::synthetic(0, [Vector2::new(1.0, 1.0)], 0.0, 1.0, vec![[0; 32]]),
+            Isometry3::identity(),
+        );
+        map.add_keyframe(
+            &Measurement::synthetic(1, [Vector2::new(1.0, 1.0)], 0.0, 1.0, vec![[0; 32]]),
+            Isometry3::identity(),
+        );
+        let mut frames: BTreeMap<usize, FrameObservations> =
+            (0..12).map(|i| (i, frame(i, kf0))).collect();
+        // A frame of another map is neither a camera nor re-placed here.
+        frames.insert(12, frame(12, 999));
+        let (cameras, rest) = select_frames(&map, &frames, 0.5);
+        let ids = |v: &[&FrameObservations]| v.iter().map(|f| f.frame).collect::<Vec<_>>();
+        // t = 0.25 i; frames 0 and 4 (0 s, 1 s) are the keyframes.
+        assert_eq!(ids(&cameras), vec![1, 3, 5, 7, 9, 11]);
+        assert_eq!(ids(&rest), vec![2, 6, 8, 10]);
+    }
 }

@@ -25,6 +25,7 @@ use crate::preprocess::{ImageGeometry, Measurement};
 use crate::tracker::Tracker;
 use nalgebra::Isometry3;
 pub use spec::{Activity, Guard, MachineSpec, State};
+use std::collections::BTreeMap;
 
 /// What one step produced.
 #[derive(Debug, Clone)]
@@ -131,6 +132,12 @@ pub struct StateMachine {
     /// (see `map_retracked`); and the frame's pose when that made it a keyframe.
     retracked: Option<crate::tracker::TrackResult>,
     entry_pose: Option<actions::Pose>,
+    /// The observations of the frame tracked last in this step, and of every frame whose pose
+    /// stands (for Final's batch refinement).
+    pending_obs: Option<crate::map_merger::FrameObservations>,
+    frame_obs: BTreeMap<usize, crate::map_merger::FrameObservations>,
+    /// Frame poses Final's batch refinement re-estimated: keyframe and pose relative to it.
+    pub refined_frames: BTreeMap<usize, (KfId, Isometry3<f64>)>,
     /// Set when the machine stopped because the map is unusable.
     pub stop_reason: Option<String>,
     invalidated_from: Option<usize>,
@@ -187,6 +194,9 @@ impl StateMachine {
             retracked: None,
             resume: None,
             entry_pose: None,
+            pending_obs: None,
+            frame_obs: BTreeMap::new(),
+            refined_frames: BTreeMap::new(),
             invalidated_from: None,
             mono: config.sequence.mono,
             track_inliers: None,
@@ -241,6 +251,7 @@ impl StateMachine {
     /// Processes one measurement in the current state.
     pub fn step(&mut self, m: &Measurement, timing: &mut Timing) -> StepOutput {
         self.invalidated_from = None;
+        self.pending_obs = None;
         self.retracked = None;
         self.track_inliers = None;
         self.track_matched.clear();
@@ -263,6 +274,14 @@ impl StateMachine {
             .take()
             .or(pose)
             .and_then(|(rel, _, kf)| self.atlas.map_of_keyframe(kf).map(|map| (rel, map, kf)));
+        if let Some(from) = self.invalidated_from {
+            self.frame_obs.retain(|f, _| *f < from);
+        }
+        if let (Some((rel, _, kf)), Some(mut obs)) = (pose, self.pending_obs.take()) {
+            obs.kf = kf;
+            obs.rel = rel;
+            self.frame_obs.insert(m.frame, obs);
+        }
         StepOutput {
             state: self.state_name(),
             transitions,
