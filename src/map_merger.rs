@@ -864,11 +864,14 @@ fn match_for_triangulation(
 pub struct FrameObservations {
     pub frame: usize,
     pub t: f64,
-    /// The keyframe the frame's pose is kept relative to, and that pose (`T_cw · T_kw⁻¹`).
+    /// The keyframe the frame's pose is kept relative to, and that pose (`T_cw · T_kw⁻¹`, its
+    /// translation in the keyframe's creation units, see `Keyframe::relative_of`).
     pub kf: KfId,
     pub rel: Isometry3<f64>,
-    /// Camera velocity (rolling shutter).
+    /// Camera velocity (rolling shutter), its translation in the same units as `rel`'s.
     pub twist: nalgebra::Vector6<f64>,
+    /// A keyframe was made from this frame (so it is no extra camera for the Final BA).
+    pub keyframe: bool,
     /// (point, undistorted keypoint, depth (0 = none), octave, raw row).
     pub obs: Vec<(PointId, Vector2<f64>, f32, u8, f32)>,
 }
@@ -891,6 +894,7 @@ impl FrameObservations {
             kf: 0,
             rel: Isometry3::identity(),
             twist: track.twist,
+            keyframe: false,
             obs,
         }
     }
@@ -990,6 +994,10 @@ impl MapMerger {
             ..Default::default()
         };
         let k = map.keyframes.get(&f.kf)?;
+        let mut twist = f.twist;
+        for i in 3..6 {
+            twist[i] *= k.units;
+        }
         let (ids, obs): (Vec<PointId>, Vec<crate::optim::PoseObservation>) = f
             .obs
             .iter()
@@ -1006,7 +1014,7 @@ impl MapMerger {
                             Observation::Mono { uv }
                         },
                         info: octave_information(octave as u32),
-                        shutter: self.geo.shutter(&f.twist, y as f64),
+                        shutter: self.geo.shutter(&twist, y as f64),
                     },
                 ))
             })

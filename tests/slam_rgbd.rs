@@ -209,7 +209,7 @@ fn an_isolated_foreign_frame_is_refused_and_tracking_goes_on() {
 /// Localized (no keyframes in known space), so with keyframes alone the final BA has nothing
 /// to pull it back and the frames after the drop inherit its error (measured: ATE 0.85 cm,
 /// 0.32 cm without the drop). The frames tracked there see its points from elsewhere
-/// (measured with them: 0.25 cm).
+/// (measured with them: 0.24 cm).
 #[test]
 fn final_refinement_with_frames_repairs_a_frozen_keyframe() {
     use homing::io::perturb::PerturbationSpec;

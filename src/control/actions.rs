@@ -368,6 +368,7 @@ impl StateMachine {
             r.ba_outliers
         );
         let kf = r.keyframe;
+        self.keyframe_made = true;
         self.tracker.reference_kf = Some(kf);
         self.check_keyframe_depth(cur, kf);
         if self.cfg.loop_closing.enabled {
@@ -1400,6 +1401,8 @@ impl StateMachine {
             if let Some(&(_, f)) = self.pool_frames.iter().find(|(q, _)| *q == u.pool) {
                 let after = f + 1;
                 self.invalidated_from = Some(self.invalidated_from.map_or(after, |x| x.min(after)));
+                // Their observations go too: Final may follow in this very step.
+                self.frame_obs.retain(|frame, _| *frame < after);
             }
             for row in self.closures.iter_mut() {
                 if row.pool == Some(u.pool) {
@@ -1543,13 +1546,12 @@ fn select_frames<'a>(
     Vec<&'a crate::map_merger::FrameObservations>,
     Vec<&'a crate::map_merger::FrameObservations>,
 ) {
-    let kf_stamps: BTreeSet<u64> = map.keyframes.values().map(|k| k.t.to_bits()).collect();
     let mut cameras = Vec::new();
     let mut rest = Vec::new();
     let mut last: Option<f64> = None;
     for f in frames
         .values()
-        .filter(|f| map.keyframes.contains_key(&f.kf) && !kf_stamps.contains(&f.t.to_bits()))
+        .filter(|f| map.keyframes.contains_key(&f.kf) && !f.keyframe)
     {
         if last.is_none_or(|l| f.t - l >= interval) {
             last = Some(f.t);
@@ -1702,19 +1704,15 @@ mod tests {
             rel: Isometry3::identity(),
             twist: Vector6::zeros(),
             obs: Vec::new(),
+            keyframe: i == 0 || i == 4,
         }
     }
 
     #[test]
     fn final_ba_cameras_are_spaced_in_time_and_skip_keyframes() {
         let mut map = Map::new(0);
-        // Keyframes made from the frames at 0 s and 1 s.
         let kf0 = map.add_keyframe(
             &Measurement::synthetic(0, [Vector2::new(1.0, 1.0)], 0.0, 1.0, vec![[0; 32]]),
-            Isometry3::identity(),
-        );
-        map.add_keyframe(
-            &Measurement::synthetic(1, [Vector2::new(1.0, 1.0)], 0.0, 1.0, vec![[0; 32]]),
             Isometry3::identity(),
         );
         let mut frames: BTreeMap<usize, FrameObservations> =
@@ -1723,7 +1721,7 @@ mod tests {
         frames.insert(12, frame(12, 999));
         let (cameras, rest) = select_frames(&map, &frames, 0.5);
         let ids = |v: &[&FrameObservations]| v.iter().map(|f| f.frame).collect::<Vec<_>>();
-        // t = 0.25 i; frames 0 and 4 (0 s, 1 s) are the keyframes.
+        // t = 0.25 i; frames 0 and 4 became keyframes.
         assert_eq!(ids(&cameras), vec![1, 3, 5, 7, 9, 11]);
         assert_eq!(ids(&rest), vec![2, 6, 8, 10]);
     }

@@ -135,6 +135,8 @@ pub struct StateMachine {
     /// The observations of the frame tracked last in this step, and of every frame whose pose
     /// stands (for Final's batch refinement).
     pending_obs: Option<crate::map_merger::FrameObservations>,
+    /// A keyframe was made from this step's frame (it is a camera of the Final BA already).
+    keyframe_made: bool,
     frame_obs: BTreeMap<usize, crate::map_merger::FrameObservations>,
     /// Frame poses Final's batch refinement re-estimated: keyframe and pose relative to it.
     pub refined_frames: BTreeMap<usize, (KfId, Isometry3<f64>)>,
@@ -195,6 +197,7 @@ impl StateMachine {
             resume: None,
             entry_pose: None,
             pending_obs: None,
+            keyframe_made: false,
             frame_obs: BTreeMap::new(),
             refined_frames: BTreeMap::new(),
             invalidated_from: None,
@@ -252,6 +255,7 @@ impl StateMachine {
     pub fn step(&mut self, m: &Measurement, timing: &mut Timing) -> StepOutput {
         self.invalidated_from = None;
         self.pending_obs = None;
+        self.keyframe_made = false;
         self.retracked = None;
         self.track_inliers = None;
         self.track_matched.clear();
@@ -274,12 +278,22 @@ impl StateMachine {
             .take()
             .or(pose)
             .and_then(|(rel, _, kf)| self.atlas.map_of_keyframe(kf).map(|map| (rel, map, kf)));
-        if let Some(from) = self.invalidated_from {
-            self.frame_obs.retain(|f, _| *f < from);
-        }
-        if let (Some((rel, _, kf)), Some(mut obs)) = (pose, self.pending_obs.take()) {
+        if let (Some((rel, map, kf)), Some(mut obs)) = (pose, self.pending_obs.take()) {
             obs.kf = kf;
             obs.rel = rel;
+            obs.keyframe = self.keyframe_made;
+            // Like `rel`, the velocity's translation is kept in the keyframe's units, so a
+            // Sim3 merge that rescales the map later rescales it too.
+            if let Some(k) = self
+                .atlas
+                .maps
+                .get(&map)
+                .and_then(|mp| mp.keyframes.get(&kf))
+            {
+                for i in 3..6 {
+                    obs.twist[i] /= k.units;
+                }
+            }
             self.frame_obs.insert(m.frame, obs);
         }
         StepOutput {
