@@ -898,6 +898,27 @@ impl FrameObservations {
             obs,
         }
     }
+
+    /// Ties the observations to the frame's standing pose: `rel` on keyframe `k`. Like
+    /// `rel`'s (see `Keyframe::relative_of`), the velocity's translation is kept in `k`'s
+    /// units, so a Sim3 merge that later rescales the map rescales it too.
+    pub fn anchor(&mut self, k: &crate::map::Keyframe, rel: Isometry3<f64>, keyframe: bool) {
+        self.kf = k.id;
+        self.rel = rel;
+        self.keyframe = keyframe;
+        for i in 3..6 {
+            self.twist[i] /= k.units;
+        }
+    }
+
+    /// The velocity in keyframe `k`'s current units (see [`Self::anchor`]).
+    fn twist_on(&self, k: &crate::map::Keyframe) -> nalgebra::Vector6<f64> {
+        let mut twist = self.twist;
+        for i in 3..6 {
+            twist[i] *= k.units;
+        }
+        twist
+    }
 }
 
 impl MapMerger {
@@ -994,10 +1015,7 @@ impl MapMerger {
             ..Default::default()
         };
         let k = map.keyframes.get(&f.kf)?;
-        let mut twist = f.twist;
-        for i in 3..6 {
-            twist[i] *= k.units;
-        }
+        let twist = f.twist_on(k);
         let (ids, obs): (Vec<PointId>, Vec<crate::optim::PoseObservation>) = f
             .obs
             .iter()

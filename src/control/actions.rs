@@ -1497,11 +1497,7 @@ impl StateMachine {
         let ids: Vec<MapId> = self.atlas.maps.keys().copied().collect();
         for id in ids {
             let map = self.atlas.maps.get_mut(&id).expect("listed");
-            let (cameras, rest) = if interval > 0.0 {
-                select_frames(map, &self.frame_obs, interval)
-            } else {
-                (Vec::new(), Vec::new())
-            };
+            let (cameras, rest) = select_frames(map, &self.frame_obs, interval);
             let Some((r, poses)) = timing.time("final_ba", || {
                 self.merger.global_ba_with_frames(map, &cameras)
             }) else {
@@ -1516,9 +1512,6 @@ impl StateMachine {
                 r.iterations,
                 r.outliers.len()
             );
-            if interval <= 0.0 {
-                continue;
-            }
             let placed: Vec<(usize, nalgebra::Isometry3<f64>)> =
                 timing.time("final_frames", || {
                     rest.iter()
@@ -1537,7 +1530,8 @@ impl StateMachine {
 
 /// The tracked frames of `map` for the Final BA: the cameras (the first frame, then the first
 /// one at least `interval` seconds after the last chosen; frames that became keyframes are
-/// cameras already and left out), and the rest, to be re-placed on the refined map.
+/// cameras already and left out), and the rest, to be re-placed on the refined map. None
+/// when `interval` is 0 (keyframes only).
 fn select_frames<'a>(
     map: &crate::map::Map,
     frames: &'a BTreeMap<usize, crate::map_merger::FrameObservations>,
@@ -1548,6 +1542,9 @@ fn select_frames<'a>(
 ) {
     let mut cameras = Vec::new();
     let mut rest = Vec::new();
+    if interval <= 0.0 {
+        return (cameras, rest);
+    }
     let mut last: Option<f64> = None;
     for f in frames
         .values()

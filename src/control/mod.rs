@@ -132,11 +132,11 @@ pub struct StateMachine {
     /// (see `map_retracked`); and the frame's pose when that made it a keyframe.
     retracked: Option<crate::tracker::TrackResult>,
     entry_pose: Option<actions::Pose>,
-    /// The observations of the frame tracked last in this step, and of every frame whose pose
-    /// stands (for Final's batch refinement).
+    /// The observations of the frame tracked last in this step, kept if its pose stands.
     pending_obs: Option<crate::map_merger::FrameObservations>,
     /// A keyframe was made from this step's frame (it is a camera of the Final BA already).
     keyframe_made: bool,
+    /// The observations of every frame whose pose stands, for Final's batch refinement.
     frame_obs: BTreeMap<usize, crate::map_merger::FrameObservations>,
     /// Frame poses Final's batch refinement re-estimated: keyframe and pose relative to it.
     pub refined_frames: BTreeMap<usize, (KfId, Isometry3<f64>)>,
@@ -278,22 +278,10 @@ impl StateMachine {
             .take()
             .or(pose)
             .and_then(|(rel, _, kf)| self.atlas.map_of_keyframe(kf).map(|map| (rel, map, kf)));
-        if let (Some((rel, map, kf)), Some(mut obs)) = (pose, self.pending_obs.take()) {
-            obs.kf = kf;
-            obs.rel = rel;
-            obs.keyframe = self.keyframe_made;
-            // Like `rel`, the velocity's translation is kept in the keyframe's units, so a
-            // Sim3 merge that rescales the map later rescales it too.
-            if let Some(k) = self
-                .atlas
-                .maps
-                .get(&map)
-                .and_then(|mp| mp.keyframes.get(&kf))
-            {
-                for i in 3..6 {
-                    obs.twist[i] /= k.units;
-                }
-            }
+        if let (Some((rel, map, kf)), Some(mut obs)) = (pose, self.pending_obs.take())
+            && let Some(k) = self.atlas.maps[&map].keyframes.get(&kf)
+        {
+            obs.anchor(k, rel, self.keyframe_made);
             self.frame_obs.insert(m.frame, obs);
         }
         StepOutput {
