@@ -857,6 +857,11 @@ fn match_for_triangulation(
     pairs
 }
 
+/// Refined frame poses (`T_cw`) by frame index.
+pub type FramePoses = Vec<(usize, Isometry3<f64>)>;
+/// A frame's inlier observations as BA terms, with the point each one sees.
+pub type FrameTerms = Vec<(PointId, BaObservation)>;
+
 /// A tracked frame's inlier observations, kept for the Final state's batch refinement: frames
 /// tracked in Localized (no keyframes there, by design) and between keyframes still see the
 /// map's points from other places, and the full BA uses them as extra cameras.
@@ -930,7 +935,7 @@ impl MapMerger {
         &self,
         map: &mut Map,
         frames: &[&FrameObservations],
-    ) -> Option<(optim::BaReport, Vec<(usize, Isometry3<f64>)>)> {
+    ) -> Option<(optim::BaReport, FramePoses)> {
         let iterations = self.cfg.final_ba_iterations as usize;
         if iterations == 0 || map.keyframes.len() < 2 {
             return None;
@@ -956,7 +961,7 @@ impl MapMerger {
             ..Default::default()
         };
         let kf = free.iter().copied().max()?;
-        let placed: Vec<(usize, Isometry3<f64>, Vec<(PointId, BaObservation)>)> = frames
+        let placed: Vec<(usize, Isometry3<f64>, FrameTerms)> = frames
             .iter()
             .filter_map(|f| {
                 let (pose, obs) = self.place_frame(map, f)?;
@@ -1004,7 +1009,7 @@ impl MapMerger {
         &self,
         map: &Map,
         f: &FrameObservations,
-    ) -> Option<(Isometry3<f64>, Vec<(PointId, BaObservation)>)> {
+    ) -> Option<(Isometry3<f64>, FrameTerms)> {
         // The frame was tracked and starts near its place: one robust round and one plain
         // one, each of a few iterations, are enough (the tracker's four rounds of ten start
         // from a prediction).

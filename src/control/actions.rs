@@ -11,6 +11,7 @@ use crate::loop_validator::{
     self, Accepted, Agreement, Query, Verdict, relative, relative_information,
 };
 use crate::map::KfId;
+use crate::map_merger::FrameObservations;
 use crate::output::{ClosureRow, Timing};
 use crate::preprocess::Measurement;
 use crate::tracker::{TrackMethod, TrackResult};
@@ -282,7 +283,7 @@ impl StateMachine {
         self.last_tracked_t = Some(m.t);
         let map = self.atlas.maps.get_mut(&cur).expect("current map exists");
         self.merger.note_tracked(map, track);
-        self.pending_obs = Some(crate::map_merger::FrameObservations::new(m, track));
+        self.pending_obs = Some(FrameObservations::new(m, track));
         let kf = track
             .reference_kf
             .or(self.tracker.reference_kf)
@@ -1512,12 +1513,11 @@ impl StateMachine {
                 r.iterations,
                 r.outliers.len()
             );
-            let placed: Vec<(usize, nalgebra::Isometry3<f64>)> =
-                timing.time("final_frames", || {
-                    rest.iter()
-                        .filter_map(|f| Some((f.frame, self.merger.place_frame(map, f)?.0)))
-                        .collect()
-                });
+            let placed: crate::map_merger::FramePoses = timing.time("final_frames", || {
+                rest.iter()
+                    .filter_map(|f| Some((f.frame, self.merger.place_frame(map, f)?.0)))
+                    .collect()
+            });
             for (f, pose_cw) in poses.into_iter().chain(placed) {
                 let kf = self.frame_obs[&f].kf;
                 if let Some(k) = map.keyframes.get(&kf) {
@@ -1534,12 +1534,9 @@ impl StateMachine {
 /// when `interval` is 0 (keyframes only).
 fn select_frames<'a>(
     map: &crate::map::Map,
-    frames: &'a BTreeMap<usize, crate::map_merger::FrameObservations>,
+    frames: &'a BTreeMap<usize, FrameObservations>,
     interval: f64,
-) -> (
-    Vec<&'a crate::map_merger::FrameObservations>,
-    Vec<&'a crate::map_merger::FrameObservations>,
-) {
+) -> (Vec<&'a FrameObservations>, Vec<&'a FrameObservations>) {
     let mut cameras = Vec::new();
     let mut rest = Vec::new();
     if interval <= 0.0 {
@@ -1686,9 +1683,9 @@ fn known_viewpoint(
 
 #[cfg(test)]
 mod tests {
+    use super::FrameObservations;
     use super::select_frames;
     use crate::map::Map;
-    use crate::map_merger::FrameObservations;
     use crate::preprocess::Measurement;
     use nalgebra::{Isometry3, Vector2, Vector6};
     use std::collections::BTreeMap;
