@@ -83,6 +83,13 @@ impl Initializer {
             .filter(|&i| m.depth[i] > 0.0 && (m.depth[i] as f64) <= self.max_depth)
             .collect();
         if usable.len() < self.min_points {
+            tracing::debug!(
+                "frame {}: {} key points with depth up to {} m, {} needed to start a map",
+                m.frame,
+                usable.len(),
+                self.max_depth,
+                self.min_points
+            );
             return None;
         }
         let kf = map.add_keyframe(m, Isometry3::identity());
