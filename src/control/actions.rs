@@ -967,7 +967,6 @@ impl StateMachine {
         self.loop_pool.clear();
         self.expectation_failures = 0;
         self.localized_peak_inliers = 0;
-        self.localized_by_merge = into != from;
         self.unknown_view_frames = 0;
         self.cond.left_known_area = false;
     }
@@ -1109,17 +1108,18 @@ impl StateMachine {
         // fails. Where a keyframe looks from, a new keyframe would duplicate it, so with depth
         // Localized holds as long as the tracker does (the depth check guards the map).
         // Without depth the check is appearance only, which cannot tell a blurred frame from a
-        // wrong map: weak tracking leaves before that check could condemn a correct map. After
-        // a loop inside one map (which the pose graph's consistency check has vetted), so does
-        // losing half the inliers Localized had, as when motion blur sets in (fr1_xyz near
-        // frame 245); after a merge of two maps the appearance check is the only guard left,
-        // and Localized stays for it (the look-alike doors of the case study).
+        // wrong map: weak tracking leaves before that check could condemn a correct map. So does
+        // losing half the inliers Localized had, after a loop as after a merge: as the camera
+        // leaves the place it was recognised in, the inliers of a correct closure decay just as
+        // a wrong one's do (fr1_xyz after each kidnapping; the look-alike door C of the case
+        // study), and waiting for the appearance check condemned the correct merges. Mapping
+        // resumes, and its keyframes reach the closures again.
         self.localized_peak_inliers = self.localized_peak_inliers.max(track.n_inliers);
-        let floor = if !self.mono || self.localized_by_merge {
-            c.min_localized_inliers as usize
-        } else {
-            (c.min_localized_inliers as usize).max(self.localized_peak_inliers / 2)
-        };
+        let floor = localized_inlier_floor(
+            self.mono,
+            c.min_localized_inliers as usize,
+            self.localized_peak_inliers,
+        );
         let weak = track.n_inliers < floor && !(known_view && by_depth);
         self.cond.left_known_area =
             self.flags.consistent_map && (weak || self.unknown_view_frames >= c.left_after_frames);
@@ -1681,9 +1681,21 @@ fn known_viewpoint(
     shared.values().any(|&n| n >= KNOWN_VIEW_MIN_SHARED)
 }
 
+/// Fewest inliers a frame may have before Localized leaves (see `track_localized`): with depth
+/// the controller's floor; without, also half the most Localized had (`peak`), however it was
+/// entered (a loop or a merge).
+fn localized_inlier_floor(mono: bool, min_inliers: usize, peak: usize) -> usize {
+    if mono {
+        min_inliers.max(peak / 2)
+    } else {
+        min_inliers
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::FrameObservations;
+    use super::localized_inlier_floor;
     use super::select_frames;
     use crate::map::Map;
     use crate::preprocess::Measurement;
@@ -1718,5 +1730,15 @@ mod tests {
         // t = 0.25 i; frames 0 and 4 became keyframes.
         assert_eq!(ids(&cameras), vec![1, 3, 5, 7, 9, 11]);
         assert_eq!(ids(&rest), vec![2, 6, 8, 10]);
+    }
+
+    /// Without depth, Localized leaves on losing half its best inliers (fr1_xyz's correct
+    /// merges after a kidnapping decay from ~230 to ~110 inliers as the camera moves on, and
+    /// the appearance check would condemn them); with depth only the floor applies.
+    #[test]
+    fn localized_leaves_on_half_its_peak_only_without_depth() {
+        assert_eq!(localized_inlier_floor(true, 50, 230), 115);
+        assert_eq!(localized_inlier_floor(true, 50, 60), 50);
+        assert_eq!(localized_inlier_floor(false, 50, 230), 50);
     }
 }

@@ -103,8 +103,6 @@ pub struct StateMachine {
     expectation_failures: u32,
     /// Most inliers of a frame since Localized was entered (see `track_localized`).
     localized_peak_inliers: usize,
-    /// Localized was entered by merging two maps (not by a loop inside one).
-    localized_by_merge: bool,
     unknown_view_frames: u32,
     /// Why the map was found inconsistent: pools the global optimizer flagged (empty: the
     /// expectation check failed).
@@ -183,7 +181,6 @@ impl StateMachine {
             accepted: None,
             expectation_failures: 0,
             localized_peak_inliers: 0,
-            localized_by_merge: false,
             unknown_view_frames: 0,
             suspects: Vec::new(),
             contradicting_keyframes: 0,
