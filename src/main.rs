@@ -706,6 +706,7 @@ fn cmd_case_study(
         threaded,
         controllers,
         config,
+        jobs: 0,
     };
     let (_, md) = case_study::case_study(&data, &out, &opts)?;
     print!("{md}");

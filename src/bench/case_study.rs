@@ -116,6 +116,9 @@ pub struct Options {
     pub controllers: Vec<ControllerKind>,
     /// Config file for every run (`None`: the defaults).
     pub config: Option<PathBuf>,
+    /// Controllers run at a time (0: one per core). Each controller's two sessions are
+    /// independent of the others', so the outputs do not depend on it.
+    pub jobs: usize,
 }
 
 impl Default for Options {
@@ -124,97 +127,155 @@ impl Default for Options {
             threaded: false,
             controllers: CONTROLLERS.to_vec(),
             config: None,
+            jobs: 0,
         }
     }
 }
 
 /// Runs the controllers on both sessions under `data` (session1/, session2/) and writes
 /// OUT/case_study.md and OUT/case_study.json.
-pub fn case_study(data: &Path, out: &Path, o: &Options) -> Result<(CaseStudy, String)> {
+/// What every controller's runs share: the two sessions and their steps.
+struct Sessions<'a> {
+    s1: &'a Path,
+    s2: &'a Path,
+    steps1: &'a [timeline::ScenarioStep],
+    steps2: &'a [timeline::ScenarioStep],
+    window: usize,
+}
+
+/// Both sessions under controller `kind`, compared with its Table II column.
+fn run_controller(
+    kind: ControllerKind,
+    session: &Sessions<'_>,
+    out: &Path,
+    o: &Options,
+) -> Result<ControllerResult> {
     let threaded = o.threaded;
+    let (s1, s2, window) = (
+        session.s1.to_path_buf(),
+        session.s2.to_path_buf(),
+        session.window,
+    );
+    let name = kind.as_str();
+    let dir = out.join(name);
+    let atlas = dir.join("atlas.bin");
+    let opts = RunOptions {
+        sequence: s1.clone(),
+        out: dir.join("session1"),
+        eval: true,
+        command: std::env::args().collect(),
+        threaded,
+        config: o.config.clone(),
+        controller: Some(kind),
+        save_map: (kind == ControllerKind::Ours).then(|| atlas.clone()),
+        ..Default::default()
+    };
+    tracing::info!("bench case-study: {name}, session 1");
+    let sum1 = run(&opts)?;
+    let opts2 = RunOptions {
+        sequence: s2.clone(),
+        out: dir.join("session2"),
+        eval: true,
+        command: std::env::args().collect(),
+        threaded,
+        config: o.config.clone(),
+        controller: Some(kind),
+        load_map: (kind == ControllerKind::Ours).then(|| atlas.clone()),
+        ..Default::default()
+    };
+    tracing::info!("bench case-study: {name}, session 2");
+    run(&opts2)?;
+    let mut st1 = session.steps1.to_vec();
+    let mut st2 = session.steps2.to_vec();
+    if let Some(col) = paper_column(kind) {
+        for s in st1.iter_mut().chain(st2.iter_mut()) {
+            if let Some(e) = col.get(s.step as usize) {
+                s.expected_states = e.iter().map(|x| x.to_string()).collect();
+            }
+        }
+    }
+    let rows1 = crate::output::read_states(&dir.join("session1/states.csv"))?;
+    let rows2 = crate::output::read_states(&dir.join("session2/states.csv"))?;
+    let known_view = if kind == ControllerKind::Ours {
+        first_known_view(&s1, &s2, &dir.join("session1/keyframes.txt"))?
+    } else {
+        None
+    };
+    let localized = rows2
+        .iter()
+        .find(|r| r.state == "Localized")
+        .map(|r| r.frame);
+    let mut steps = timeline::compare(&st1, &rows1, window);
+    steps.extend(timeline::compare(&st2, &rows2, window));
+    let c = |p: &str| {
+        sum1.evaluation
+            .as_ref()
+            .and_then(|e| e.pointer(p))
+            .and_then(|v| v.as_u64())
+            .unwrap_or(0)
+    };
+    Ok(ControllerResult {
+        controller: name.into(),
+        steps_total: steps.len(),
+        steps_matched: steps.iter().filter(|s| s.matched).count(),
+        maps: sum1.maps,
+        keyframes: sum1.keyframes,
+        coverage: num(&sum1, "/coverage"),
+        ate_largest_map_m: num(&sum1, "/largest_map/ate_rmse_m"),
+        closures_accepted: c("/closures/accepted"),
+        closures_accepted_wrong: c("/closures/accepted_wrong"),
+        closures_rolled_back: c("/closures/rolled_back"),
+        final_state: sum1.final_state.clone(),
+        steps,
+        session2_known_view_frame: known_view,
+        session2_localized_frame: localized,
+    })
+}
+
+pub fn case_study(data: &Path, out: &Path, o: &Options) -> Result<(CaseStudy, String)> {
     let s1 = data.join("session1");
     let s2 = data.join("session2");
     let steps1 = timeline::read_steps(&s1.join("scenario.json"))?;
     let steps2 = timeline::read_steps(&s2.join("scenario.json"))?;
     let fps = scenario_fps(&s1.join("scenario.json"))?;
     let window = (fps * 1.0).round() as usize;
-    let mut results = Vec::new();
-    for &kind in &o.controllers {
-        let name = kind.as_str();
-        let dir = out.join(name);
-        let atlas = dir.join("atlas.bin");
-        let opts = RunOptions {
-            sequence: s1.clone(),
-            out: dir.join("session1"),
-            eval: true,
-            command: std::env::args().collect(),
-            threaded,
-            config: o.config.clone(),
-            controller: Some(kind),
-            save_map: (kind == ControllerKind::Ours).then(|| atlas.clone()),
-            ..Default::default()
-        };
-        tracing::info!("bench case-study: {name}, session 1");
-        let sum1 = run(&opts)?;
-        let opts2 = RunOptions {
-            sequence: s2.clone(),
-            out: dir.join("session2"),
-            eval: true,
-            command: std::env::args().collect(),
-            threaded,
-            config: o.config.clone(),
-            controller: Some(kind),
-            load_map: (kind == ControllerKind::Ours).then(|| atlas.clone()),
-            ..Default::default()
-        };
-        tracing::info!("bench case-study: {name}, session 2");
-        run(&opts2)?;
-        let mut st1 = steps1.clone();
-        let mut st2 = steps2.clone();
-        if let Some(col) = paper_column(kind) {
-            for s in st1.iter_mut().chain(st2.iter_mut()) {
-                if let Some(e) = col.get(s.step as usize) {
-                    s.expected_states = e.iter().map(|x| x.to_string()).collect();
+    let session = Sessions {
+        s1: &s1,
+        s2: &s2,
+        steps1: &steps1,
+        steps2: &steps2,
+        window,
+    };
+    // The controllers' runs are independent: `jobs` at a time (the benchmark's case study was
+    // a quarter of its wall time, on one core), results in table order.
+    let jobs = if o.jobs == 0 {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    } else {
+        o.jobs
+    };
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let slots: std::sync::Mutex<Vec<Option<Result<ControllerResult>>>> =
+        std::sync::Mutex::new((0..o.controllers.len()).map(|_| None).collect());
+    std::thread::scope(|sc| {
+        for _ in 0..jobs.clamp(1, o.controllers.len().max(1)) {
+            sc.spawn(|| {
+                loop {
+                    let i = next.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+                    let Some(&kind) = o.controllers.get(i) else {
+                        break;
+                    };
+                    let r = run_controller(kind, &session, out, o);
+                    slots.lock().unwrap_or_else(|e| e.into_inner())[i] = Some(r);
                 }
-            }
+            });
         }
-        let rows1 = crate::output::read_states(&dir.join("session1/states.csv"))?;
-        let rows2 = crate::output::read_states(&dir.join("session2/states.csv"))?;
-        let known_view = if kind == ControllerKind::Ours {
-            first_known_view(&s1, &s2, &dir.join("session1/keyframes.txt"))?
-        } else {
-            None
-        };
-        let localized = rows2
-            .iter()
-            .find(|r| r.state == "Localized")
-            .map(|r| r.frame);
-        let mut steps = timeline::compare(&st1, &rows1, window);
-        steps.extend(timeline::compare(&st2, &rows2, window));
-        let c = |p: &str| {
-            sum1.evaluation
-                .as_ref()
-                .and_then(|e| e.pointer(p))
-                .and_then(|v| v.as_u64())
-                .unwrap_or(0)
-        };
-        results.push(ControllerResult {
-            controller: name.into(),
-            steps_total: steps.len(),
-            steps_matched: steps.iter().filter(|s| s.matched).count(),
-            maps: sum1.maps,
-            keyframes: sum1.keyframes,
-            coverage: num(&sum1, "/coverage"),
-            ate_largest_map_m: num(&sum1, "/largest_map/ate_rmse_m"),
-            closures_accepted: c("/closures/accepted"),
-            closures_accepted_wrong: c("/closures/accepted_wrong"),
-            closures_rolled_back: c("/closures/rolled_back"),
-            final_state: sum1.final_state.clone(),
-            steps,
-            session2_known_view_frame: known_view,
-            session2_localized_frame: localized,
-        });
-    }
+    });
+    let results = slots
+        .into_inner()
+        .unwrap_or_else(|e| e.into_inner())
+        .into_iter()
+        .flatten()
+        .collect::<Result<Vec<_>>>()?;
     let cs = CaseStudy {
         data: data.to_path_buf(),
         window_frames: window,
