@@ -150,41 +150,31 @@ fn run_controller(
     out: &Path,
     o: &Options,
 ) -> Result<ControllerResult> {
-    let threaded = o.threaded;
-    let (s1, s2, window) = (
-        session.s1.to_path_buf(),
-        session.s2.to_path_buf(),
-        session.window,
-    );
+    let (s1, s2, window) = (session.s1, session.s2, session.window);
     let name = kind.as_str();
     let dir = out.join(name);
     let atlas = dir.join("atlas.bin");
-    let opts = RunOptions {
-        sequence: s1.clone(),
-        out: dir.join("session1"),
+    let ours = kind == ControllerKind::Ours;
+    let session_run = |sequence: &Path, sub: &str| RunOptions {
+        sequence: sequence.to_path_buf(),
+        out: dir.join(sub),
         eval: true,
         command: std::env::args().collect(),
-        threaded,
+        threaded: o.threaded,
         config: o.config.clone(),
         controller: Some(kind),
-        save_map: (kind == ControllerKind::Ours).then(|| atlas.clone()),
         ..Default::default()
     };
     tracing::info!("bench case-study: {name}, session 1");
-    let sum1 = run(&opts)?;
-    let opts2 = RunOptions {
-        sequence: s2.clone(),
-        out: dir.join("session2"),
-        eval: true,
-        command: std::env::args().collect(),
-        threaded,
-        config: o.config.clone(),
-        controller: Some(kind),
-        load_map: (kind == ControllerKind::Ours).then(|| atlas.clone()),
-        ..Default::default()
-    };
+    let sum1 = run(&RunOptions {
+        save_map: ours.then(|| atlas.clone()),
+        ..session_run(s1, "session1")
+    })?;
     tracing::info!("bench case-study: {name}, session 2");
-    run(&opts2)?;
+    run(&RunOptions {
+        load_map: ours.then(|| atlas.clone()),
+        ..session_run(s2, "session2")
+    })?;
     let mut st1 = session.steps1.to_vec();
     let mut st2 = session.steps2.to_vec();
     if let Some(col) = paper_column(kind) {
@@ -196,8 +186,8 @@ fn run_controller(
     }
     let rows1 = crate::output::read_states(&dir.join("session1/states.csv"))?;
     let rows2 = crate::output::read_states(&dir.join("session2/states.csv"))?;
-    let known_view = if kind == ControllerKind::Ours {
-        first_known_view(&s1, &s2, &dir.join("session1/keyframes.txt"))?
+    let known_view = if ours {
+        first_known_view(s1, s2, &dir.join("session1/keyframes.txt"))?
     } else {
         None
     };
