@@ -132,8 +132,6 @@ impl Default for Options {
     }
 }
 
-/// Runs the controllers on both sessions under `data` (session1/, session2/) and writes
-/// OUT/case_study.md and OUT/case_study.json.
 /// What every controller's runs share: the two sessions and their steps.
 struct Sessions<'a> {
     s1: &'a Path,
@@ -222,6 +220,8 @@ fn run_controller(
     })
 }
 
+/// Runs the controllers on both sessions under `data` (session1/, session2/) and writes
+/// OUT/case_study.md and OUT/case_study.json.
 pub fn case_study(data: &Path, out: &Path, o: &Options) -> Result<(CaseStudy, String)> {
     let s1 = data.join("session1");
     let s2 = data.join("session2");
@@ -238,34 +238,11 @@ pub fn case_study(data: &Path, out: &Path, o: &Options) -> Result<(CaseStudy, St
     };
     // The controllers' runs are independent: `jobs` at a time (the benchmark's case study was
     // a quarter of its wall time, on one core), results in table order.
-    let jobs = if o.jobs == 0 {
-        std::thread::available_parallelism().map_or(1, |n| n.get())
-    } else {
-        o.jobs
-    };
-    let next = std::sync::atomic::AtomicUsize::new(0);
-    let slots: std::sync::Mutex<Vec<Option<Result<ControllerResult>>>> =
-        std::sync::Mutex::new((0..o.controllers.len()).map(|_| None).collect());
-    std::thread::scope(|sc| {
-        for _ in 0..jobs.clamp(1, o.controllers.len().max(1)) {
-            sc.spawn(|| {
-                loop {
-                    let i = next.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
-                    let Some(&kind) = o.controllers.get(i) else {
-                        break;
-                    };
-                    let r = run_controller(kind, &session, out, o);
-                    slots.lock().unwrap_or_else(|e| e.into_inner())[i] = Some(r);
-                }
-            });
-        }
-    });
-    let results = slots
-        .into_inner()
-        .unwrap_or_else(|e| e.into_inner())
-        .into_iter()
-        .flatten()
-        .collect::<Result<Vec<_>>>()?;
+    let results = super::parallel_map(&o.controllers, super::resolve_jobs(o.jobs), |&kind| {
+        run_controller(kind, &session, out, o)
+    })
+    .into_iter()
+    .collect::<Result<Vec<_>>>()?;
     let cs = CaseStudy {
         data: data.to_path_buf(),
         window_frames: window,

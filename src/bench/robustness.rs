@@ -18,7 +18,6 @@ use crate::io::tum::TumSequence;
 use serde::Serialize;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
-use std::sync::Mutex;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
 
@@ -344,11 +343,7 @@ pub fn robustness(o: &Options) -> Result<(Vec<Row>, String)> {
         None => std::env::current_exe()
             .map_err(|e| Error::invalid(format!("cannot find the homing binary: {e}")))?,
     };
-    let jobs = if o.jobs == 0 {
-        std::thread::available_parallelism().map_or(1, |n| n.get())
-    } else {
-        o.jobs
-    };
+    let jobs = super::resolve_jobs(o.jobs);
     let abs = |p: &Path| std::path::absolute(p).unwrap_or_else(|_| p.to_path_buf());
     let out = abs(&o.out);
     std::fs::create_dir_all(&out).map_err(|e| Error::file(&out, format!("cannot create: {e}")))?;
@@ -432,7 +427,7 @@ pub fn robustness(o: &Options) -> Result<(Vec<Row>, String)> {
         jobs: 1,
     };
     let cs_out = out.join("case-study");
-    let (rows, cs) = std::thread::scope(|sc| {
+    let (rows, grid_s, cs) = std::thread::scope(|sc| {
         let cs = o.case_study.as_ref().map(|data| {
             tracing::info!("bench robustness: case study on {}", data.display());
             sc.spawn(|| case_study::case_study(data, &cs_out, &cs_opts))
@@ -443,9 +438,8 @@ pub fn robustness(o: &Options) -> Result<(Vec<Row>, String)> {
             h.join()
                 .unwrap_or_else(|_| Err(Error::invalid("the case study panicked")))
         });
-        ((rows, grid_s), cs)
+        (rows, grid_s, cs)
     });
-    let (rows, grid_s) = rows;
     let mut md = markdown(&seqs, &rows, &controllers, o.mono);
     let _ = writeln!(
         md,
@@ -507,29 +501,13 @@ fn write_outputs(out: &Path, rows: &[Row], md: &str) -> Result<()> {
 
 /// Runs the jobs `jobs` at a time; rows come back in job order whatever order they finish in.
 fn run_parallel(queue: &[Job], jobs: usize) -> Vec<Row> {
-    let next = AtomicUsize::new(0);
     let done = AtomicUsize::new(0);
-    let slots: Mutex<Vec<Option<Row>>> = Mutex::new(vec![None; queue.len()]);
-    std::thread::scope(|s| {
-        for _ in 0..jobs.clamp(1, queue.len().max(1)) {
-            s.spawn(|| {
-                loop {
-                    let i = next.fetch_add(1, Ordering::SeqCst);
-                    let Some(job) = queue.get(i) else { break };
-                    let row = run_job(job);
-                    let n = done.fetch_add(1, Ordering::SeqCst) + 1;
-                    println!("[{n}/{}] {}", queue.len(), progress_line(&row));
-                    slots.lock().unwrap_or_else(|e| e.into_inner())[i] = Some(row);
-                }
-            });
-        }
-    });
-    slots
-        .into_inner()
-        .unwrap_or_else(|e| e.into_inner())
-        .into_iter()
-        .flatten()
-        .collect()
+    super::parallel_map(queue, jobs, |job| {
+        let row = run_job(job);
+        let n = done.fetch_add(1, Ordering::SeqCst) + 1;
+        println!("[{n}/{}] {}", queue.len(), progress_line(&row));
+        row
+    })
 }
 
 fn progress_line(r: &Row) -> String {
