@@ -82,6 +82,12 @@ pub struct OrbConfig {
     pub ini_fast_threshold: u32,
     /// ... and the lower one used where the first finds nothing.
     pub min_fast_threshold: u32,
+    /// Report a key point of pyramid level `l` (scale `s`) at image pixel `(x + 0.5)·s − 0.5`,
+    /// where OpenCV's pixel-centre-aligned resize puts it, instead of ORB-SLAM's `x·s` (up to
+    /// 1.3 px up and left). Off by default: it makes tracking more accurate, and with less
+    /// drift the merge depth check no longer refuses the look-alike merge of small `aliasing`
+    /// after a kidnapping (README, Robustness).
+    pub pixel_centre_levels: bool,
 }
 
 impl Default for OrbConfig {
@@ -92,6 +98,7 @@ impl Default for OrbConfig {
             scale_factor: 1.2,
             ini_fast_threshold: 20,
             min_fast_threshold: 7,
+            pixel_centre_levels: false,
         }
     }
 }

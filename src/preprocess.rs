@@ -456,12 +456,29 @@ impl Preprocessor {
                 Error::invalid("OpenCV ORB returned descriptors that are not 32 bytes")
             })?);
         }
-        let un = self.undistort(&kps)?;
+        // OpenCV wants `level pixel · s` in the key points it describes (it divides by `s` and
+        // rounds), but its resize aligns pixel centres: level pixel `x` is image pixel
+        // `(x + 0.5)·s − 0.5`. `x·s` (ORB-SLAM's, the default) puts coarse-level points up to
+        // 1.3 px up and left of the corner; `orb.pixel_centre_levels` corrects it.
+        let centre = if self.cfg.pixel_centre_levels {
+            0.5
+        } else {
+            0.0
+        };
+        let raw: Vec<Vector2<f64>> = kps
+            .iter()
+            .map(|k| {
+                let o = centre * (self.scales[k.octave().clamp(0, 255) as usize] - 1.0);
+                Vector2::new(k.pt().x as f64 + o, k.pt().y as f64 + o)
+            })
+            .collect();
+        let un = self.undistort(&raw)?;
         let keypoints: Vec<Keypoint> = kps
             .iter()
             .zip(&un)
-            .map(|(k, u)| Keypoint {
-                raw: Vector2::new(k.pt().x as f64, k.pt().y as f64),
+            .zip(&raw)
+            .map(|((k, u), r)| Keypoint {
+                raw: *r,
                 un: *u,
                 octave: k.octave().clamp(0, 255) as u8,
                 angle: k.angle(),
@@ -634,14 +651,12 @@ impl Preprocessor {
         out
     }
 
-    fn undistort(&self, kps: &[KeyPoint]) -> Result<Vec<Vector2<f64>>> {
-        if !self.camera.has_distortion() || kps.is_empty() {
-            return Ok(kps
-                .iter()
-                .map(|k| Vector2::new(k.pt().x as f64, k.pt().y as f64))
-                .collect());
+    fn undistort(&self, pts: &[Vector2<f64>]) -> Result<Vec<Vector2<f64>>> {
+        if !self.camera.has_distortion() || pts.is_empty() {
+            return Ok(pts.to_vec());
         }
-        let src = Vector::<Point2f>::from_iter(kps.iter().map(|k| k.pt()));
+        let src =
+            Vector::<Point2f>::from_iter(pts.iter().map(|p| Point2f::new(p.x as f32, p.y as f32)));
         let mut dst = Vector::<Point2f>::new();
         opencv::calib3d::undistort_points(
             &src,
