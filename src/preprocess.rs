@@ -465,10 +465,11 @@ impl Preprocessor {
         } else {
             0.0
         };
+        let octave = |k: &KeyPoint| k.octave().clamp(0, 255) as u8;
         let raw: Vec<Vector2<f64>> = kps
             .iter()
             .map(|k| {
-                let o = centre * (self.scales[k.octave().clamp(0, 255) as usize] - 1.0);
+                let o = centre * (self.scales[octave(k) as usize] - 1.0);
                 Vector2::new(k.pt().x as f64 + o, k.pt().y as f64 + o)
             })
             .collect();
@@ -480,7 +481,7 @@ impl Preprocessor {
             .map(|((k, u), r)| Keypoint {
                 raw: *r,
                 un: *u,
-                octave: k.octave().clamp(0, 255) as u8,
+                octave: octave(k),
                 angle: k.angle(),
                 response: k.response(),
             })
