@@ -263,6 +263,11 @@ struct RunArgs {
     /// Final saves the atlas to this file.
     #[arg(long, value_name = "FILE")]
     save_map: Option<PathBuf>,
+    /// Read the frames from this file of decoded frames instead of decoding the images
+    /// (`homing bench robustness` writes one per sequence and gives it to its runs; the
+    /// outputs are the same). Checked against the sequence's frame list and camera.
+    #[arg(long, value_name = "FILE")]
+    decoded_frames: Option<PathBuf>,
 }
 
 #[derive(Args)]
@@ -439,6 +444,7 @@ fn cmd_run(a: RunArgs, quiet: bool) -> Result<()> {
         no_loop_closing: a.no_loop_closing,
         load_map: a.load_map,
         save_map: a.save_map,
+        decoded_frames: a.decoded_frames,
         rerun: match (a.rerun, a.rerun_connect) {
             (Some(f), _) => Some(homing::viz::RerunTarget::File(f)),
             (None, Some(addr)) => Some(homing::viz::RerunTarget::Connect(addr)),

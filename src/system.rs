@@ -52,6 +52,10 @@ pub struct RunOptions {
     pub mcap_timing: bool,
     /// Also log the run to rerun (a file or a live viewer); needs the `rerun` feature.
     pub rerun: Option<crate::viz::RerunTarget>,
+    /// Read the frames from this file of decoded frames (`io::decoded`, written by
+    /// `homing bench robustness` once per sequence) instead of decoding the sequence's images.
+    /// The sequence still gives the frame list, the camera and the ground truth.
+    pub decoded_frames: Option<PathBuf>,
     /// Called after every processed frame (a progress bar). It only looks: the run's outputs
     /// are the same with or without it.
     pub progress: Option<ProgressHook>,
@@ -105,7 +109,21 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
             config.sequence.max_association_dt
         );
     }
-    let perturbed = PerturbedSequence::new(&seq, &spec)?;
+    let decoded = match &opts.decoded_frames {
+        Some(p) => Some(crate::io::decoded::DecodedFrames::open(
+            p,
+            &seq,
+            camera.width,
+            camera.height,
+            !spec.mono,
+        )?),
+        None => None,
+    };
+    let frames: &(dyn FrameSource + Sync) = match &decoded {
+        Some(d) => d,
+        None => &seq,
+    };
+    let perturbed = PerturbedSequence::new(frames, &spec)?;
     let out = RunOutputs::create(&opts.out)?;
 
     let intr = Intrinsics {
@@ -457,6 +475,26 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
 }
 
 /// Opens the TUM folder or the bag and picks the camera.
+/// The sequence a run with `config_path` and `mono` reads (its frame list and images), for
+/// tools that prepare its frames (`io::decoded`).
+pub fn open_run_sequence(
+    sequence: &std::path::Path,
+    config_path: Option<&std::path::Path>,
+    mono: bool,
+) -> Result<Sequence> {
+    let config = match config_path {
+        Some(p) => Config::load(p)?,
+        None => Config::default(),
+    };
+    let opts = RunOptions {
+        sequence: sequence.to_path_buf(),
+        config: config_path.map(std::path::Path::to_path_buf),
+        ..Default::default()
+    };
+    let mono = mono || config.sequence.mono;
+    Ok(open_sequence(&opts, &config, mono)?.0)
+}
+
 fn open_sequence(
     opts: &RunOptions,
     config: &Config,

@@ -5,7 +5,10 @@
 //! every controller. Each run is a child `homing run` process: a failing or stuck run cannot
 //! take the benchmark down, runs go in parallel without sharing state, and the command line
 //! recorded in the CSV *is* the run (re-running it reproduces the row's outputs byte for byte,
-//! since runs are deterministic by default).
+//! since runs are deterministic by default). The bench decodes each sequence's images once
+//! (`io::decoded`) and adds `--decoded-frames FILE` to its runs, which changes when images are
+//! decoded, never what a run computes; the file is deleted after the grid, so the CSV records
+//! the command without it.
 //!
 //! The grid is derived from the sequence's time stamps only, so it is the same on every machine
 //! and every invocation: drops are evenly spread (event `i` of `k` centred at `i/(k+1)` of the
@@ -323,7 +326,40 @@ struct Job {
     perturbation: Perturbation,
     controller: ControllerKind,
     dir: PathBuf,
+    /// The command that reproduces the row (recorded in the CSV).
     argv: Vec<String>,
+    /// The sequence's decoded frames, given to the run as `--decoded-frames`: the same
+    /// outputs as `argv`, without decoding every image again in each of the 76 runs.
+    decoded: Option<PathBuf>,
+}
+
+/// Writes the decoded frames of `seq_dir` as a run with `mono` reads them (a monocular run
+/// of a TUM folder has every colour frame, an RGB-D one only those with a depth partner) to
+/// `path`; `None` (warned) when that fails, and the runs then decode their images.
+fn decode_sequence(
+    seq_dir: &Path,
+    o: &Options,
+    mono: bool,
+    path: &Path,
+    jobs: usize,
+) -> Option<PathBuf> {
+    let t = Instant::now();
+    let written = crate::system::open_run_sequence(seq_dir, o.config.as_deref(), mono)
+        .and_then(|seq| crate::io::decoded::write(path, &seq, jobs));
+    match written {
+        Ok(()) => {
+            tracing::info!(
+                "bench robustness: {} decoded once in {:.1} s",
+                path.display(),
+                t.elapsed().as_secs_f64()
+            );
+            Some(path.to_path_buf())
+        }
+        Err(e) => {
+            tracing::warn!("{e}; the runs of {} decode their images", seq_dir.display());
+            None
+        }
+    }
 }
 
 /// Runs the grid (and the case study, when asked) and writes OUT/robustness.{csv,md,json};
@@ -400,6 +436,7 @@ pub fn robustness(o: &Options) -> Result<(Vec<Row>, String)> {
                     controller: c,
                     dir: run_dir,
                     argv,
+                    decoded: None,
                 });
             }
         }
@@ -411,6 +448,25 @@ pub fn robustness(o: &Options) -> Result<(Vec<Row>, String)> {
         });
     }
 
+    // Each sequence's images decoded once for all of its runs (deleted after the grid).
+    let frames_dir = out.join("decoded-frames");
+    if let Err(e) = std::fs::create_dir_all(&frames_dir) {
+        tracing::warn!("cannot create {}: {e}", frames_dir.display());
+    }
+    let mut files: std::collections::BTreeMap<(String, bool), Option<PathBuf>> = Default::default();
+    for job in &mut queue {
+        let mono = o.mono || job.argv.iter().any(|a| a == "--mono");
+        let key = (job.sequence.clone(), mono);
+        if !files.contains_key(&key) {
+            let i = seqs.iter().position(|s| s.name == job.sequence);
+            let name = format!("{}{}.frames", job.sequence, if mono { "-mono" } else { "" });
+            let file = i.and_then(|i| {
+                decode_sequence(&o.sequences[i], o, mono, &frames_dir.join(name), jobs)
+            });
+            files.insert(key.clone(), file);
+        }
+        job.decoded = files[&key].clone();
+    }
     tracing::info!(
         "bench robustness: {} runs ({} sequences, {} controllers), {jobs} at a time",
         queue.len(),
@@ -434,6 +490,9 @@ pub fn robustness(o: &Options) -> Result<(Vec<Row>, String)> {
         });
         let rows = run_parallel(&queue, jobs);
         let grid_s = wall.elapsed().as_secs_f64();
+        if let Err(e) = std::fs::remove_dir_all(&frames_dir) {
+            tracing::warn!("cannot remove {}: {e}", frames_dir.display());
+        }
         let cs = cs.map(|h| {
             h.join()
                 .unwrap_or_else(|_| Err(Error::invalid("the case study panicked")))
@@ -564,9 +623,12 @@ fn run_job(job: &Job) -> Row {
         return row;
     }
     let start = Instant::now();
-    let output = std::process::Command::new(&job.argv[0])
-        .args(&job.argv[1..])
-        .output();
+    let mut command = std::process::Command::new(&job.argv[0]);
+    command.args(&job.argv[1..]);
+    if let Some(d) = &job.decoded {
+        command.arg("--decoded-frames").arg(d);
+    }
+    let output = command.output();
     row.wall_s = start.elapsed().as_secs_f64();
     let output = match output {
         Ok(o) => o,

@@ -2,6 +2,7 @@
 //! a sequence, and atomic writes of run outputs.
 
 pub mod cdr;
+pub mod decoded;
 pub mod mcap;
 pub mod perturb;
 pub mod tum;

@@ -283,7 +283,7 @@ impl DepthImage {
 
 /// One frame as it reaches the front end. `index` is the frame's index in the *unperturbed*
 /// sequence, so that outputs can always be related to the original data.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct Frame {
     pub index: usize,
     pub t: f64,
