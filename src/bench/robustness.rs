@@ -329,7 +329,7 @@ struct Job {
     /// The command that reproduces the row (recorded in the CSV).
     argv: Vec<String>,
     /// The sequence's decoded frames, given to the run as `--decoded-frames`: the same
-    /// outputs as `argv`, without decoding every image again in each of the 76 runs.
+    /// outputs as `argv`, without decoding every image again in each of the sequence's runs.
     decoded: Option<PathBuf>,
 }
 

@@ -1,7 +1,7 @@
 //! Decoded frames: a sequence's frames as the run sees them after PNG (or bag) decoding, in
 //! one raw file, so that many runs on the same sequence decode it once.
 //!
-//! `homing bench robustness` runs every sequence 76 times (19 perturbations × 4 controllers);
+//! `homing bench robustness` runs every sequence 60–84 times (its perturbations × 4 controllers);
 //! PNG decoding was a quarter of each 640×480 run's CPU time. The bench writes one file per
 //! sequence and hands it to its runs (`homing run --decoded-frames FILE`); a run reads frame
 //! `i` from it instead of decoding, and computes exactly what it computes from the PNGs (the
