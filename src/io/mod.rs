@@ -27,6 +27,17 @@ pub fn atomic_write_with(
     path: &Path,
     f: impl FnOnce(&mut std::io::BufWriter<std::fs::File>) -> Result<()>,
 ) -> Result<()> {
+    write_via_temporary(path, true, f)
+}
+
+/// Writes `f`'s output to a temporary file next to `path` and renames it to `path`, so that a
+/// reader never sees a half-written file; `sync` flushes it to disk before the rename (results;
+/// a scratch file that is rebuilt when lost, as `decoded`'s, skips that cost).
+pub(crate) fn write_via_temporary(
+    path: &Path,
+    sync: bool,
+    f: impl FnOnce(&mut std::io::BufWriter<std::fs::File>) -> Result<()>,
+) -> Result<()> {
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d,
         _ => Path::new("."),
@@ -47,9 +58,11 @@ pub fn atomic_write_with(
         let file = w
             .into_inner()
             .map_err(|e| Error::file(path, format!("cannot write: {e}")))?;
-        file.sync_all()
-            .and_then(|_| std::fs::rename(&tmp, path))
-            .map_err(|e| Error::file(path, format!("cannot write: {e}")))
+        if sync {
+            file.sync_all()
+                .map_err(|e| Error::file(path, format!("cannot write: {e}")))?;
+        }
+        std::fs::rename(&tmp, path).map_err(|e| Error::file(path, format!("cannot write: {e}")))
     })();
     if result.is_err() {
         let _ = std::fs::remove_file(&tmp);
