@@ -474,7 +474,6 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
     }
 }
 
-/// Opens the TUM folder or the bag and picks the camera.
 /// The sequence a run with `config_path` and `mono` reads (its frame list and images), for
 /// tools that prepare its frames (`io::decoded`).
 pub fn open_run_sequence(
@@ -495,6 +494,7 @@ pub fn open_run_sequence(
     Ok(open_sequence(&opts, &config, mono)?.0)
 }
 
+/// Opens the TUM folder or the bag and picks the camera.
 fn open_sequence(
     opts: &RunOptions,
     config: &Config,

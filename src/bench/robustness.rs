@@ -455,7 +455,8 @@ pub fn robustness(o: &Options) -> Result<(Vec<Row>, String)> {
     }
     let mut files: std::collections::BTreeMap<(String, bool), Option<PathBuf>> = Default::default();
     for job in &mut queue {
-        let mono = o.mono || job.argv.iter().any(|a| a == "--mono");
+        // `--mono` is in the command when the whole bench is monocular or the perturbation is.
+        let mono = job.argv.iter().any(|a| a == "--mono");
         let key = (job.sequence.clone(), mono);
         if !files.contains_key(&key) {
             let i = seqs.iter().position(|s| s.name == job.sequence);

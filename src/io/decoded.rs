@@ -46,9 +46,27 @@ pub fn write(path: &Path, source: &(dyn FrameSource + Sync), jobs: usize) -> Res
             w.write_all(&source.timestamp(i).to_le_bytes())
                 .map_err(err)?;
         }
-        // Decoded `jobs` frames at a time (one thread each), written in order.
+        let mut put = |i: usize, f: &Frame| -> Result<()> {
+            if f.rgb.dimensions() != (width, height) || f.depth.is_some() != depth {
+                return Err(Error::file(
+                    path,
+                    format!(
+                        "frame {i} differs from frame 0 in size or in having depth; \
+                         cannot store the sequence as fixed-size records"
+                    ),
+                ));
+            }
+            w.write_all(f.rgb.as_raw()).map_err(err)?;
+            if let Some(d) = &f.depth {
+                let bytes: Vec<u8> = d.data.iter().flat_map(|v| v.to_le_bytes()).collect();
+                w.write_all(&bytes).map_err(err)?;
+            }
+            Ok(())
+        };
+        put(0, &first)?;
+        // The others decoded `jobs` frames at a time (one thread each), written in order.
         let batch = jobs.max(1);
-        let mut next = 0;
+        let mut next = 1;
         while next < n {
             let end = (next + batch).min(n);
             let frames: Vec<Result<Frame>> = std::thread::scope(|s| {
@@ -64,21 +82,7 @@ pub fn write(path: &Path, source: &(dyn FrameSource + Sync), jobs: usize) -> Res
                     .collect()
             });
             for (i, f) in (next..end).zip(frames) {
-                let f = f?;
-                if f.rgb.dimensions() != (width, height) || f.depth.is_some() != depth {
-                    return Err(Error::file(
-                        path,
-                        format!(
-                            "frame {i} differs from frame 0 in size or in having depth; \
-                             cannot store the sequence as fixed-size records"
-                        ),
-                    ));
-                }
-                w.write_all(f.rgb.as_raw()).map_err(err)?;
-                if let Some(d) = &f.depth {
-                    let bytes: Vec<u8> = d.data.iter().flat_map(|v| v.to_le_bytes()).collect();
-                    w.write_all(&bytes).map_err(err)?;
-                }
+                put(i, &f?)?;
             }
             next = end;
         }
