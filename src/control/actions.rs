@@ -30,6 +30,12 @@ const CANDIDATES_PER_QUERY: usize = 2;
 /// Fewest detector votes for a relocalization near miss to be validated (see `relocalize`).
 const NEAR_MISS_MIN_VOTES: usize = 8;
 
+/// Keyframes of a lost place (the last reference keyframe and its best covisible ones), and
+/// how long after the loss they are candidates (see `lost_place_candidate`).
+const LOST_PLACE_KEYFRAMES: usize = 5;
+const LOST_PLACE_WINDOW_S: f64 = 10.0;
+const LOST_PLACE_MIN_INLIERS: usize = 150;
+
 /// Shared map points that make a keyframe part of a look-alike place (the covisibility
 /// graph's edge threshold).
 const LOOKALIKE_COVISIBILITY: u32 = 15;
@@ -190,12 +196,28 @@ impl StateMachine {
             // Within the re-acquisition gap, this frame may be a second false one: if the map
             // it starts is lost at once (discarded), tracking resumes where it was.
             let resume = (same_map && recent).then(|| self.tracking_at()).flatten();
+            let lost = self.lost_keyframes();
             let pose = self.start_new_map(m, timing)?;
             self.resume = resume;
+            self.lost_place = lost.map(|(keyframes, lost_t)| super::LostPlace {
+                new_map: pose.1,
+                keyframes,
+                lost_t,
+            });
             self.flags.able_to_track = true;
             return Some(pose);
         }
         None
+    }
+
+    /// The keyframe the tracker referred to last in the current (lost) map, then its best
+    /// covisible ones, and the stamp of the last tracked frame.
+    fn lost_keyframes(&self) -> Option<(Vec<KfId>, f64)> {
+        let map = &self.atlas.maps.get(&self.current?)?;
+        let kf = map.keyframes.get(&self.tracker.reference_kf?)?;
+        let mut kfs = vec![kf.id];
+        kfs.extend(kf.best_covisible(LOST_PLACE_KEYFRAMES - 1));
+        Some((kfs, self.last_tracked_t?))
     }
 
     /// The tracker on the current map (Core's Mapping region and Localized). A break in the
@@ -609,11 +631,17 @@ impl StateMachine {
                     .map_of_keyframe(c.image as KfId)
                     .is_some_and(|m| atlas.loaded.contains(&m))
         });
-        let candidates: Vec<&loop_validator::Candidate> = if det.candidates.is_empty() {
+        let mut candidates: Vec<&loop_validator::Candidate> = if det.candidates.is_empty() {
             near_miss.collect()
         } else {
             det.candidates.iter().take(CANDIDATES_PER_QUERY).collect()
         };
+        let lost = self.lost_place_candidate(m, cur);
+        if let Some(c) = &lost
+            && !candidates.iter().any(|d| d.image == c.image)
+        {
+            candidates.push(c);
+        }
         for c in candidates {
             let Some(match_map) = self.atlas.map_of_keyframe(c.image as KfId) else {
                 continue;
@@ -628,18 +656,71 @@ impl StateMachine {
                     .mono
                     .then(|| (&self.atlas.maps[&cur], track.matches.as_slice())),
             };
-            let verdict = loop_validator::validate(
+            let mut verdict = loop_validator::validate(
                 &self.cfg.loop_closing,
                 &self.geo,
                 &q,
                 &self.atlas.maps[&match_map],
                 c,
             );
+            // Proposed without the detector's evidence, the lost place must show it in
+            // geometry: a weak pose would make a weak pool, whose merge check then fails.
+            if lost.as_ref().is_some_and(|l| std::ptr::eq(c, l))
+                && let Verdict::Valid(v) = &verdict
+                && v.n_inliers < LOST_PLACE_MIN_INLIERS
+            {
+                verdict = Verdict::Rejected {
+                    matched: v.matched,
+                    reason: loop_validator::Rejection::Refinement,
+                    inliers: v.n_inliers,
+                    pose_in_match: Some(v.pose_in_match),
+                };
+            }
             let window = self.cfg.loop_closing.pool_window_frames as usize;
             if self.offer(verdict, m, "relocalization", window) {
                 break;
             }
         }
+    }
+
+    /// While the map started after a loss is young, the lost place's keyframe with the most
+    /// detector votes (the keyframe tracked last when none has any) is a candidate: after a
+    /// short gap the camera is most likely still there, and a view from a few metres away
+    /// gets too few of the detector's tight votes to be proposed. The validator and the pool
+    /// judge it like any other candidate.
+    fn lost_place_candidate(
+        &self,
+        m: &Measurement,
+        cur: MapId,
+    ) -> Option<loop_validator::Candidate> {
+        let lp = self.lost_place.as_ref()?;
+        if lp.new_map != cur || m.t - lp.lost_t > LOST_PLACE_WINDOW_S {
+            return None;
+        }
+        let kfs: BTreeSet<KfId> = lp
+            .keyframes
+            .iter()
+            .copied()
+            .filter(|k| {
+                !self.aliased.contains(k)
+                    && self.atlas.map_of_keyframe(*k).is_some_and(|mm| mm != cur)
+            })
+            .collect();
+        let first = *lp.keyframes.iter().find(|k| kfs.contains(k))?;
+        let det = self
+            .detector
+            .detect(&m.descriptors, |img| !kfs.contains(&(img as KfId)));
+        Some(
+            det.candidates
+                .into_iter()
+                .chain(det.near_misses)
+                .next()
+                .unwrap_or(loop_validator::Candidate {
+                    image: first as u64,
+                    score: 0.0,
+                    matches: Vec::new(),
+                }),
+        )
     }
 
     /// Logs a validator verdict and offers a valid candidate to its pool. Returns true when a

@@ -58,6 +58,18 @@ struct TrackingAt {
     last_tracked_t: Option<f64>,
 }
 
+/// Where the camera was when tracking was lost, for the map started after it (see
+/// `StateMachine::lost_place`).
+#[derive(Debug, Clone)]
+struct LostPlace {
+    /// The map started after the loss.
+    new_map: MapId,
+    /// The lost map's keyframe the tracker referred to last, then its best covisible ones.
+    keyframes: Vec<KfId>,
+    /// Stamp of the last frame tracked before the loss.
+    lost_t: f64,
+}
+
 /// See [`StateMachine::before_pool`].
 #[derive(Clone)]
 struct BeforePool {
@@ -126,6 +138,10 @@ pub struct StateMachine {
     /// Tracking before the newest map was started within a short gap (see
     /// `discard_unconfirmed`).
     resume: Option<TrackingAt>,
+    /// After a loss, the lost map's last keyframes: the Relocalize region of the map started
+    /// next validates them as candidates while the camera may still be near them, whatever
+    /// the loop detector's votes (a short gap rarely moves the camera far).
+    lost_place: Option<LostPlace>,
     /// A frame Idle re-tracked in the current map, for the entered state's Mapping region
     /// (see `map_retracked`); and the frame's pose when that made it a keyframe.
     retracked: Option<crate::tracker::TrackResult>,
@@ -192,6 +208,7 @@ impl StateMachine {
             stop_reason: None,
             retracked: None,
             resume: None,
+            lost_place: None,
             entry_pose: None,
             pending_obs: None,
             keyframe_made: false,
