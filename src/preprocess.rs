@@ -380,7 +380,10 @@ impl Preprocessor {
         })
     }
 
-    /// Grayscale conversion (ITU-R 601 weights, as OpenCV's RGB2GRAY).
+    /// Grayscale conversion: the `image` crate's luma, with ITU-R BT.709 weights (0.2126,
+    /// 0.7152, 0.0722), not the BT.601 ones of OpenCV's RGB2GRAY and ORB-SLAM (0.299, 0.587,
+    /// 0.114). Every result in the README was measured with these; changing them changes
+    /// every key point's response.
     fn gray(frame: &Frame) -> Result<Mat> {
         let gray = image::imageops::grayscale(&frame.rgb);
         let (w, h) = gray.dimensions();
