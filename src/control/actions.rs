@@ -683,11 +683,11 @@ impl StateMachine {
         }
     }
 
-    /// While the map started after a loss is young, the lost place's keyframe with the most
-    /// detector votes (the keyframe tracked last when none has any) is a candidate: after a
-    /// short gap the camera is most likely still there, and a view from a few metres away
-    /// gets too few of the detector's tight votes to be proposed. The validator and the pool
-    /// judge it like any other candidate.
+    /// For `LOST_PLACE_WINDOW_S` after a loss, in the map started after it, the lost place's
+    /// keyframe with the most detector votes (the keyframe tracked last when none has any) is
+    /// a candidate: after a short gap the camera is most likely still near it, but a view a
+    /// few decimetres and degrees away gets too few of the detector's tight votes to be
+    /// proposed. The validator, the pool and the merge depth check judge it like any other.
     fn lost_place_candidate(
         &self,
         m: &Measurement,
