@@ -57,7 +57,8 @@ pub struct Transition {
 #[derive(Debug, Clone, PartialEq)]
 pub struct ClosureRow {
     pub frame: usize,
-    /// `loop` or `relocalization`.
+    /// `loop`, `relocalization`, or `lost-place` (a relocalization candidate that the lost
+    /// map's last keyframes gave, not the loop detector; it joins the same pool).
     pub kind: String,
     pub t_query: f64,
     pub t_match: f64,

@@ -663,9 +663,10 @@ impl StateMachine {
                 &self.atlas.maps[&match_map],
                 c,
             );
+            let from_lost_place = lost.as_ref().is_some_and(|l| std::ptr::eq(c, l));
             // Proposed without the detector's evidence, the lost place must show it in
             // geometry: a weak pose would make a weak pool, whose merge check then fails.
-            if lost.as_ref().is_some_and(|l| std::ptr::eq(c, l))
+            if from_lost_place
                 && let Verdict::Valid(v) = &verdict
                 && v.n_inliers < LOST_PLACE_MIN_INLIERS
             {
@@ -677,7 +678,13 @@ impl StateMachine {
                 };
             }
             let window = self.cfg.loop_closing.pool_window_frames as usize;
-            if self.offer(verdict, m, "relocalization", window) {
+            // Logged as its own kind; it joins the relocalization pool.
+            let kind = if from_lost_place {
+                "lost-place"
+            } else {
+                "relocalization"
+            };
+            if self.offer(verdict, m, kind, window) {
                 break;
             }
         }
