@@ -30,9 +30,10 @@ const CANDIDATES_PER_QUERY: usize = 2;
 /// Fewest detector votes for a relocalization near miss to be validated (see `relocalize`).
 const NEAR_MISS_MIN_VOTES: usize = 8;
 
-/// Keyframes of a lost place (the last reference keyframe and its best covisible ones), and
-/// how long after the loss they are candidates (see `lost_place_candidate`).
-const LOST_PLACE_KEYFRAMES: usize = 5;
+/// Keyframes of a lost place (the last reference keyframe and those nearest it, within the
+/// radius), and how long after the loss they are candidates (see `lost_place_candidate`).
+const LOST_PLACE_KEYFRAMES: usize = 10;
+const LOST_PLACE_RADIUS_M: f64 = 1.0;
 const LOST_PLACE_WINDOW_S: f64 = 10.0;
 const LOST_PLACE_MIN_INLIERS: usize = 150;
 
@@ -210,13 +211,24 @@ impl StateMachine {
         None
     }
 
-    /// The keyframe the tracker referred to last in the current (lost) map, then its best
-    /// covisible ones, and the stamp of the last tracked frame.
+    /// The keyframe the tracker referred to last in the current (lost) map, then the map's
+    /// other keyframes taken within `LOST_PLACE_RADIUS_M` of it, nearest first (in a turn in
+    /// place the camera may look anywhere from there after the gap, not only where the
+    /// reference keyframe's covisible ones look); and the stamp of the last tracked frame.
     fn lost_keyframes(&self) -> Option<(Vec<KfId>, f64)> {
         let map = &self.atlas.maps.get(&self.current?)?;
         let kf = map.keyframes.get(&self.tracker.reference_kf?)?;
+        let c = kf.center();
+        let mut near: Vec<(f64, KfId)> = map
+            .keyframes
+            .values()
+            .filter(|k| k.id != kf.id)
+            .map(|k| ((k.center() - c).norm(), k.id))
+            .filter(|&(d, _)| d <= LOST_PLACE_RADIUS_M)
+            .collect();
+        near.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
         let mut kfs = vec![kf.id];
-        kfs.extend(kf.best_covisible(LOST_PLACE_KEYFRAMES - 1));
+        kfs.extend(near.iter().take(LOST_PLACE_KEYFRAMES - 1).map(|&(_, k)| k));
         Some((kfs, self.last_tracked_t?))
     }
 
