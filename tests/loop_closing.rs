@@ -209,6 +209,42 @@ fn aliasing_after_a_kidnapping_is_not_merged() {
     );
 }
 
+/// Three 1 s drops in `aliasing` (9.2, 18.8, 28.4 s): the map started after the third one, in
+/// room B, turns on the spot where the map before it was lost, and is joined to it through the
+/// lost place (the keyframes taken there, whichever way they look). Room B's end looks exactly
+/// like room A's start, and that look-alike merge is proposed at the end; the joined map's
+/// keyframes see through room A's points under its alignment and refuse it. Before the lost
+/// place was searched by position: the third map alone was merged into room A (3 wrong
+/// closures, 5.3 m).
+#[test]
+fn aliasing_after_three_drops_is_not_merged() {
+    let run = common::run_small(
+        "aliasing",
+        homing::io::perturb::PerturbationSpec {
+            drops: vec![
+                "9.15s:10.15s".parse().unwrap(),
+                "18.799s:19.799s".parse().unwrap(),
+                "28.449s:29.449s".parse().unwrap(),
+            ],
+            ..Default::default()
+        },
+    );
+    let (out, s) = (&run.out, &run.summary);
+    let c = &s.evaluation.as_ref().unwrap()["closures"];
+    assert_eq!(c["accepted_wrong"].as_u64().unwrap(), 0, "{c}");
+    let closures = std::fs::read_to_string(out.join("closures.csv")).unwrap();
+    assert!(
+        closures
+            .lines()
+            .any(|l| l.contains(",lost-place,") && l.contains(",accepted,")),
+        "no merge through the lost place: {closures}"
+    );
+    assert!(
+        closures.contains("rejected:map-contradiction"),
+        "the look-alike merge was not proposed and refused"
+    );
+}
+
 /// Small `scenario` with false frames of `kind` at rate `p` (seed 1).
 fn with_false_frames(
     scenario: &str,
