@@ -57,8 +57,9 @@ pub struct Transition {
 #[derive(Debug, Clone, PartialEq)]
 pub struct ClosureRow {
     pub frame: usize,
-    /// `loop`, `relocalization`, or `lost-place` (a relocalization candidate that the lost
-    /// map's last keyframes gave, not the loop detector; it joins the same pool).
+    /// `loop`, `relocalization`, or `lost-place` (a relocalization candidate among the lost
+    /// map's keyframes at the place tracking was lost, not the loop detector's; it joins the
+    /// same pool).
     pub kind: String,
     pub t_query: f64,
     pub t_match: f64,

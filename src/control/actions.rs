@@ -216,7 +216,7 @@ impl StateMachine {
     /// place the camera may look anywhere from there after the gap, not only where the
     /// reference keyframe's covisible ones look); and the stamp of the last tracked frame.
     fn lost_keyframes(&self) -> Option<(Vec<KfId>, f64)> {
-        let map = &self.atlas.maps.get(&self.current?)?;
+        let map = self.atlas.maps.get(&self.current?)?;
         let kf = map.keyframes.get(&self.tracker.reference_kf?)?;
         let c = kf.center();
         let mut near: Vec<(f64, KfId)> = map

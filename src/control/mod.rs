@@ -64,7 +64,8 @@ struct TrackingAt {
 struct LostPlace {
     /// The map started after the loss.
     new_map: MapId,
-    /// The lost map's keyframe the tracker referred to last, then its best covisible ones.
+    /// The lost map's keyframe the tracker referred to last, then its keyframes taken
+    /// nearest to it (see `StateMachine::lost_keyframes`).
     keyframes: Vec<KfId>,
     /// Stamp of the last frame tracked before the loss.
     lost_t: f64,
@@ -138,7 +139,7 @@ pub struct StateMachine {
     /// Tracking before the newest map was started within a short gap (see
     /// `discard_unconfirmed`).
     resume: Option<TrackingAt>,
-    /// After a loss, the lost map's last keyframes: the Relocalize region of the map started
+    /// After a loss, the lost map's keyframes at the lost place: the Relocalize region of the map started
     /// next validates them as candidates while the camera may still be near them, whatever
     /// the loop detector's votes (a short gap rarely moves the camera far).
     lost_place: Option<LostPlace>,
