@@ -268,6 +268,12 @@ struct RunArgs {
     /// outputs are the same). Checked against the sequence's frame list and camera.
     #[arg(long, value_name = "FILE")]
     decoded_frames: Option<PathBuf>,
+    /// Take unperturbed frames' ORB features from this file instead of extracting them again
+    /// (`homing bench robustness` writes one per sequence; the outputs are the same, and the
+    /// extraction time recorded in the file is counted as the run's). Checked against the
+    /// sequence's frame list, camera and ORB settings.
+    #[arg(long, value_name = "FILE")]
+    features: Option<PathBuf>,
 }
 
 #[derive(Args)]
@@ -445,6 +451,7 @@ fn cmd_run(a: RunArgs, quiet: bool) -> Result<()> {
         load_map: a.load_map,
         save_map: a.save_map,
         decoded_frames: a.decoded_frames,
+        features: a.features,
         rerun: match (a.rerun, a.rerun_connect) {
             (Some(f), _) => Some(homing::viz::RerunTarget::File(f)),
             (None, Some(addr)) => Some(homing::viz::RerunTarget::Connect(addr)),

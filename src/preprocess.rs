@@ -70,7 +70,7 @@ pub struct Keypoint {
 }
 
 /// What the front end sees of a frame.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct Measurement {
     pub frame: usize,
     pub t: f64,

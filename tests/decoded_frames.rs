@@ -1,11 +1,12 @@
-//! Decoded frames (`homing run --decoded-frames`): a run reading them computes what it
-//! computes from the images, and a file that does not belong to the sequence, or is cut
-//! short, is a clear error naming it.
+//! Decoded frames (`homing run --decoded-frames`) and extracted features (`--features`): a
+//! run reading them computes what it computes from the images, and a file that does not
+//! belong to the sequence (or to the run's settings), or is cut short, is a clear error
+//! naming it.
 
 mod common;
 
-use homing::io::decoded;
 use homing::io::tum::{FrameSource, TumSequence};
+use homing::io::{decoded, features};
 use std::path::{Path, PathBuf};
 
 /// A sequence's frames written as decoded frames to `path` (the sequence `w`×`h`).
@@ -20,6 +21,16 @@ fn write_decoded(seq: &Path, path: &Path, (w, h): (u32, u32)) {
 }
 
 fn run(seq: &Path, out: &Path, decoded: Option<&Path>) -> (bool, String) {
+    run_with(
+        seq,
+        out,
+        decoded
+            .map(|d| ["--decoded-frames", d.to_str().unwrap()])
+            .as_slice(),
+    )
+}
+
+fn run_with(seq: &Path, out: &Path, extra: &[[&str; 2]]) -> (bool, String) {
     let mut args = vec![
         "run",
         "--sequence",
@@ -27,18 +38,21 @@ fn run(seq: &Path, out: &Path, decoded: Option<&Path>) -> (bool, String) {
         "--out",
         out.to_str().unwrap(),
     ];
-    if let Some(d) = decoded {
-        args.extend(["--decoded-frames", d.to_str().unwrap()]);
-    }
+    args.extend(extra.iter().flatten());
     let (ok, _, stderr) = common::homing(&args);
     (ok, stderr)
 }
 
-#[test]
-fn a_run_on_decoded_frames_equals_the_run_on_the_images() {
+/// A sequence's features, extracted as a run with default settings does, written to `path`.
+fn write_features(seq: &Path, path: &Path) {
+    let (s, camera, orb) = homing::system::open_run_front_end(seq, None, false).unwrap();
+    features::write(path, &s, &camera, &orb, 2).unwrap();
+}
+
+/// A small generated `desk` sequence of `frames` frames in `dir`.
+fn generated_desk(dir: &Path, frames: usize) -> PathBuf {
     use homing_datasets::{scenarios, sensor::SensorOptions, writer};
-    let tmp = tempfile::tempdir().unwrap();
-    let seq = tmp.path().join("desk");
+    let seq = dir.join("desk");
     writer::generate(
         &scenarios::build("desk", 1).unwrap(),
         &writer::GenOptions {
@@ -46,18 +60,21 @@ fn a_run_on_decoded_frames_equals_the_run_on_the_images() {
             small: true,
             seed: 1,
             sensor: SensorOptions::realistic(),
-            max_frames: Some(40),
+            max_frames: Some(frames),
         },
     )
     .unwrap();
-    let file = tmp.path().join("desk.frames");
-    write_decoded(&seq, &file, (320, 240));
-    let (a, b) = (tmp.path().join("a"), tmp.path().join("b"));
-    let (ok, stderr) = run(&seq, &a, None);
-    assert!(ok, "{stderr}");
-    let (ok, stderr) = run(&seq, &b, Some(&file));
-    assert!(ok, "{stderr}");
-    for f in ["trajectory.txt", "states.csv", "keyframes.txt"] {
+    seq
+}
+
+/// The two runs' outputs are byte for byte the same, over at least `min_poses` poses.
+fn same_outputs(a: &Path, b: &Path, min_poses: usize) {
+    for f in [
+        "trajectory.txt",
+        "states.csv",
+        "keyframes.txt",
+        "closures.csv",
+    ] {
         let (x, y) = (
             std::fs::read(a.join(f)).unwrap(),
             std::fs::read(b.join(f)).unwrap(),
@@ -66,7 +83,103 @@ fn a_run_on_decoded_frames_equals_the_run_on_the_images() {
     }
     let poses = std::fs::read_to_string(b.join("trajectory.txt")).unwrap();
     let n = poses.lines().filter(|l| !l.starts_with('#')).count();
-    assert!(n >= 30, "only {n} poses: the comparison would prove little");
+    assert!(
+        n >= min_poses,
+        "only {n} poses: the comparison would prove little"
+    );
+}
+
+#[test]
+fn a_run_on_decoded_frames_equals_the_run_on_the_images() {
+    let tmp = tempfile::tempdir().unwrap();
+    let seq = generated_desk(tmp.path(), 40);
+    let file = tmp.path().join("desk.frames");
+    write_decoded(&seq, &file, (320, 240));
+    let (a, b) = (tmp.path().join("a"), tmp.path().join("b"));
+    let (ok, stderr) = run(&seq, &a, None);
+    assert!(ok, "{stderr}");
+    let (ok, stderr) = run(&seq, &b, Some(&file));
+    assert!(ok, "{stderr}");
+    same_outputs(&a, &b, 30);
+}
+
+/// With false frames (extracted by the run itself) and without depth (the file's depth
+/// cleared) too: the features file changes nothing but the work done.
+#[test]
+fn a_run_on_extracted_features_equals_the_run_on_the_images() {
+    let tmp = tempfile::tempdir().unwrap();
+    let seq = generated_desk(tmp.path(), 40);
+    let file = tmp.path().join("desk.features");
+    write_features(&seq, &file);
+    let with = ["--features", file.to_str().unwrap()];
+    for (name, extra) in [
+        ("plain", vec![]),
+        (
+            "faults",
+            vec![
+                ["--fault", "noise@5,6"],
+                ["--fault", "black@20"],
+                ["--fault", "foreign@35"],
+            ],
+        ),
+        ("mono", vec![["--mono", "--eval"]]),
+    ] {
+        let (a, b) = (tmp.path().join(format!("{name}-a")), tmp.path().join(name));
+        let (ok, stderr) = run_with(&seq, &a, &extra);
+        assert!(ok, "{name}: {stderr}");
+        let mut extra = extra.clone();
+        extra.push(with);
+        let (ok, stderr) = run_with(&seq, &b, &extra);
+        assert!(ok, "{name}: {stderr}");
+        // Monocular initialisation takes a few frames more.
+        same_outputs(&a, &b, 20);
+        // The file's extraction time is counted as the run's.
+        let s: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(b.join("summary.json")).unwrap())
+                .unwrap();
+        let reused = s["extraction_reused_s"].as_f64().unwrap();
+        assert!(reused > 0.0, "{name}: no frame taken from the file");
+        assert!(s["wall_time_s"].as_f64().unwrap() > reused, "{name}");
+    }
+}
+
+#[test]
+fn features_of_another_sequence_other_settings_or_cut_short_are_clear_errors() {
+    let tmp = tempfile::tempdir().unwrap();
+    let seq = common::tum_folder(tmp.path(), "seq", 12);
+    let shorter = common::tum_folder(tmp.path(), "shorter", 8);
+    let file = tmp.path().join("shorter.features");
+    write_features(&shorter, &file);
+    let out = tmp.path().join("out");
+    fn with(f: &Path) -> [[&str; 2]; 1] {
+        [["--features", f.to_str().unwrap()]]
+    }
+    // Another sequence: its frame count differs.
+    let (ok, stderr) = run_with(&seq, &out, &with(&file));
+    common::assert_clear_error(ok, &stderr, "shorter.features");
+    assert!(stderr.contains("8 frames"), "{stderr}");
+    // Other ORB settings than the run's.
+    let cfg = tmp.path().join("orb.toml");
+    std::fs::write(&cfg, "[orb]\nn_features = 500\n").unwrap();
+    let mut extra = with(&file).to_vec();
+    extra.push(["--config", cfg.to_str().unwrap()]);
+    let (ok, stderr) = run_with(&shorter, &out, &extra);
+    common::assert_clear_error(ok, &stderr, "shorter.features");
+    assert!(stderr.contains("ORB settings"), "{stderr}");
+    // Cut short.
+    let bytes = std::fs::read(&file).unwrap();
+    let cut = tmp.path().join("cut.features");
+    std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
+    let (ok, stderr) = run_with(&shorter, &out, &with(&cut));
+    common::assert_clear_error(ok, &stderr, "cut.features");
+    assert!(stderr.contains("truncated or corrupt"), "{stderr}");
+    // Not a features file at all, and a missing one.
+    let txt = shorter.join("rgb.txt");
+    let (ok, stderr) = run_with(&shorter, &out, &with(&txt));
+    common::assert_clear_error(ok, &stderr, "rgb.txt");
+    let none = tmp.path().join("none.features");
+    let (ok, stderr) = run_with(&shorter, &out, &with(&none));
+    common::assert_clear_error(ok, &stderr, "none.features");
 }
 
 #[test]

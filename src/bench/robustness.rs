@@ -6,9 +6,11 @@
 //! take the benchmark down, runs go in parallel without sharing state, and the command line
 //! recorded in the CSV *is* the run (re-running it reproduces the row's outputs byte for byte,
 //! since runs are deterministic by default). The bench decodes each sequence's images once
-//! (`io::decoded`) and adds `--decoded-frames FILE` to its runs, which changes when images are
-//! decoded, never what a run computes; the file is deleted after the grid, so the CSV records
-//! the command without it.
+//! (`io::decoded`) and extracts their features once (`io::features`), and adds
+//! `--decoded-frames FILE --features FILE` to its runs, which changes when images are decoded
+//! and features extracted, never what a run computes; the files are deleted after the grid,
+//! so the CSV records the command without them. A run counts the extraction time recorded in
+//! the features file as its own (`wall_s`, `fps`).
 //!
 //! The grid is derived from the sequence's time stamps only, so it is the same on every machine
 //! and every invocation: drops are evenly spread (event `i` of `k` centred at `i/(k+1)` of the
@@ -331,6 +333,51 @@ struct Job {
     /// The sequence's decoded frames, given to the run as `--decoded-frames`: the same
     /// outputs as `argv`, without decoding every image again in each of the sequence's runs.
     decoded: Option<PathBuf>,
+    /// The sequence's extracted features, given to the run as `--features` (the same
+    /// outputs; the extraction time recorded in the file counts in the run's `wall_s`).
+    features: Option<PathBuf>,
+}
+
+/// Writes the features of the decoded frames `decoded` of `seq_dir` as a run with `mono`
+/// extracts them to `path`; `None` (warned) when that fails, and the runs then extract them.
+fn extract_sequence(
+    seq_dir: &Path,
+    o: &Options,
+    mono: bool,
+    decoded: &Path,
+    path: &Path,
+    jobs: usize,
+) -> Option<PathBuf> {
+    let t = Instant::now();
+    let written = crate::system::open_run_front_end(seq_dir, o.config.as_deref(), mono).and_then(
+        |(seq, camera, orb)| {
+            let frames = crate::io::decoded::DecodedFrames::open(
+                decoded,
+                &seq,
+                camera.width,
+                camera.height,
+                false,
+            )?;
+            crate::io::features::write(path, &frames, &camera, &orb, jobs)
+        },
+    );
+    match written {
+        Ok(()) => {
+            tracing::info!(
+                "bench robustness: {} extracted once in {:.1} s",
+                path.display(),
+                t.elapsed().as_secs_f64()
+            );
+            Some(path.to_path_buf())
+        }
+        Err(e) => {
+            tracing::warn!(
+                "{e}; the runs of {} extract their features",
+                seq_dir.display()
+            );
+            None
+        }
+    }
 }
 
 /// Writes the decoded frames of `seq_dir` as a run with `mono` reads them (a monocular run
@@ -437,6 +484,7 @@ pub fn robustness(o: &Options) -> Result<(Vec<Row>, String)> {
                     dir: run_dir,
                     argv,
                     decoded: None,
+                    features: None,
                 });
             }
         }
@@ -453,7 +501,8 @@ pub fn robustness(o: &Options) -> Result<(Vec<Row>, String)> {
     if let Err(e) = std::fs::create_dir_all(&frames_dir) {
         tracing::warn!("cannot create {}: {e}", frames_dir.display());
     }
-    let mut files: std::collections::BTreeMap<(String, bool), Option<PathBuf>> = Default::default();
+    let mut files: std::collections::BTreeMap<(String, bool), (Option<PathBuf>, Option<PathBuf>)> =
+        Default::default();
     for job in &mut queue {
         // `--mono` is in the command when the whole bench is monocular or the perturbation is.
         let mono = job.argv.iter().any(|a| a == "--mono");
@@ -464,9 +513,24 @@ pub fn robustness(o: &Options) -> Result<(Vec<Row>, String)> {
             let file = i.and_then(|i| {
                 decode_sequence(&o.sequences[i], o, mono, &frames_dir.join(name), jobs)
             });
-            files.insert(key.clone(), file);
+            let features = match (&file, i) {
+                (Some(f), Some(i)) => extract_sequence(
+                    &o.sequences[i],
+                    o,
+                    mono,
+                    f,
+                    &frames_dir.join(format!(
+                        "{}{}.features",
+                        job.sequence,
+                        if mono { "-mono" } else { "" }
+                    )),
+                    jobs,
+                ),
+                _ => None,
+            };
+            files.insert(key.clone(), (file, features));
         }
-        job.decoded = files[&key].clone();
+        (job.decoded, job.features) = files[&key].clone();
     }
     tracing::info!(
         "bench robustness: {} runs ({} sequences, {} controllers), {jobs} at a time",
@@ -629,6 +693,9 @@ fn run_job(job: &Job) -> Row {
     if let Some(d) = &job.decoded {
         command.arg("--decoded-frames").arg(d);
     }
+    if let Some(f) = &job.features {
+        command.arg("--features").arg(f);
+    }
     let output = command.output();
     row.wall_s = start.elapsed().as_secs_f64();
     let output = match output {
@@ -682,6 +749,9 @@ fn read_run(dir: &Path, row: &mut Row) -> Result<()> {
     if let Some(st) = s.pointer("/final_state").and_then(|v| v.as_str()) {
         row.final_state = st.to_string();
     }
+    // Frames taken from `--features` were extracted once for every run: each run counts
+    // that extraction time as its own.
+    row.wall_s += f("/extraction_reused_s").unwrap_or(0.0);
     let frames = u("/frames").unwrap_or(0) as f64;
     row.fps = if row.wall_s > 0.0 {
         frames / row.wall_s

@@ -3,6 +3,7 @@
 
 pub mod cdr;
 pub mod decoded;
+pub mod features;
 pub mod mcap;
 pub mod perturb;
 pub mod tum;
