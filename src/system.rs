@@ -129,7 +129,7 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
         None => &seq,
     };
     let perturbed = PerturbedSequence::new(frames, &spec)?;
-    let features = match &opts.features {
+    let mut features = match &opts.features {
         Some(p) => Some(crate::io::features::Features::open(
             p,
             &seq,
@@ -215,19 +215,19 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
             // An unperturbed frame's features from the file: the same measurement, and the
             // extraction time it took when the file was written.
             let reused = features
-                .as_ref()
+                .as_mut()
                 .filter(|_| perturbed.plan.fault(frame.index).is_none())
-                .and_then(|f| f.get(frame.index));
+                .and_then(|f| f.take(frame.index));
+            let reused_ms = reused.as_ref().map_or(0.0, |e| e.ms);
             let m = match reused {
-                Some(e) => {
-                    let mut m = e.m.clone();
+                Some(mut e) => {
                     if spec.mono {
-                        m.depth.iter_mut().for_each(|d| *d = 0.0);
+                        e.m.depth.iter_mut().for_each(|d| *d = 0.0);
                     }
                     pre.weak_passes += e.weak as usize;
                     timing.record("preprocess", e.ms);
                     extraction_reused_ms += e.ms;
-                    m
+                    e.m
                 }
                 None => match timing.time("preprocess", || pre.process(&frame)) {
                     Ok(m) => m,
@@ -238,7 +238,6 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
                 },
             };
             let pre_ms = timing.last("preprocess").unwrap_or(0.0);
-            let reused_ms = reused.map_or(0.0, |e| e.ms);
             let tracked = timing.count("track");
             let counts = opts.mcap_timing.then(|| timing.counts());
             let out = machine.step(&m, &mut timing);

@@ -348,9 +348,13 @@ fn extract_sequence(
     path: &Path,
     jobs: usize,
 ) -> Option<PathBuf> {
-    let t = Instant::now();
-    let written = crate::system::open_run_front_end(seq_dir, o.config.as_deref(), mono).and_then(
-        |(seq, camera, orb)| {
+    prepared_once(
+        path,
+        seq_dir,
+        ("extracted", "extract their features"),
+        || {
+            let (seq, camera, orb) =
+                crate::system::open_run_front_end(seq_dir, o.config.as_deref(), mono)?;
             let frames = crate::io::decoded::DecodedFrames::open(
                 decoded,
                 &seq,
@@ -360,21 +364,31 @@ fn extract_sequence(
             )?;
             crate::io::features::write(path, &frames, &camera, &orb, jobs)
         },
-    );
-    match written {
+    )
+}
+
+/// Runs `write` (which writes `path` for the runs of `seq_dir`) and logs how long it took;
+/// `None` (warned) when it fails, and the runs then do the work themselves. `what` names
+/// the work done once and what the runs do instead.
+fn prepared_once(
+    path: &Path,
+    seq_dir: &Path,
+    what: (&str, &str),
+    write: impl FnOnce() -> Result<()>,
+) -> Option<PathBuf> {
+    let t = Instant::now();
+    match write() {
         Ok(()) => {
             tracing::info!(
-                "bench robustness: {} extracted once in {:.1} s",
+                "bench robustness: {} {} once in {:.1} s",
                 path.display(),
+                what.0,
                 t.elapsed().as_secs_f64()
             );
             Some(path.to_path_buf())
         }
         Err(e) => {
-            tracing::warn!(
-                "{e}; the runs of {} extract their features",
-                seq_dir.display()
-            );
+            tracing::warn!("{e}; the runs of {} {}", seq_dir.display(), what.1);
             None
         }
     }
@@ -390,23 +404,10 @@ fn decode_sequence(
     path: &Path,
     jobs: usize,
 ) -> Option<PathBuf> {
-    let t = Instant::now();
-    let written = crate::system::open_run_sequence(seq_dir, o.config.as_deref(), mono)
-        .and_then(|seq| crate::io::decoded::write(path, &seq, jobs));
-    match written {
-        Ok(()) => {
-            tracing::info!(
-                "bench robustness: {} decoded once in {:.1} s",
-                path.display(),
-                t.elapsed().as_secs_f64()
-            );
-            Some(path.to_path_buf())
-        }
-        Err(e) => {
-            tracing::warn!("{e}; the runs of {} decode their images", seq_dir.display());
-            None
-        }
-    }
+    prepared_once(path, seq_dir, ("decoded", "decode their images"), || {
+        let seq = crate::system::open_run_sequence(seq_dir, o.config.as_deref(), mono)?;
+        crate::io::decoded::write(path, &seq, jobs)
+    })
 }
 
 /// Runs the grid (and the case study, when asked) and writes OUT/robustness.{csv,md,json};

@@ -139,9 +139,9 @@ pub struct StateMachine {
     /// Tracking before the newest map was started within a short gap (see
     /// `discard_unconfirmed`).
     resume: Option<TrackingAt>,
-    /// After a loss, the lost map's keyframes at the lost place: the Relocalize region of the map started
-    /// next validates them as candidates while the camera may still be near them, whatever
-    /// the loop detector's votes (a short gap rarely moves the camera far).
+    /// After a loss, the lost map's keyframes at the lost place: the Relocalize region of the
+    /// map started next validates them as candidates while the camera may still be near them,
+    /// whatever the loop detector's votes (a short gap rarely moves the camera far).
     lost_place: Option<LostPlace>,
     /// A frame Idle re-tracked in the current map, for the entered state's Mapping region
     /// (see `map_retracked`); and the frame's pose when that made it a keyframe.

@@ -118,7 +118,10 @@ pub fn write(
 /// A file written by [`write`], checked against the run that reads it.
 #[derive(Debug)]
 pub struct Features {
-    frames: Vec<Extracted>,
+    /// Taken out as the run delivers them (each unperturbed frame once).
+    frames: Vec<Option<Extracted>>,
+    /// The image size, for the key-point grids.
+    size: (u32, u32),
 }
 
 impl Features {
@@ -165,22 +168,25 @@ impl Features {
                 )));
             }
         }
-        let mut frames = file.frames;
-        for (i, e) in frames.iter_mut().enumerate() {
+        for (i, e) in file.frames.iter().enumerate() {
             if e.m.frame != i
                 || e.m.descriptors.len() != e.m.keypoints.len()
                 || e.m.depth.len() != e.m.keypoints.len()
             {
                 return Err(bad(format!("frame {i}: inconsistent record (corrupt)")));
             }
-            // The grid's buckets are not stored: rebuilt from the key points.
-            e.m.grid = FeatureGrid::new(camera.width, camera.height, &e.m.keypoints);
         }
-        Ok(Self { frames })
+        Ok(Self {
+            frames: file.frames.into_iter().map(Some).collect(),
+            size: (camera.width, camera.height),
+        })
     }
 
-    /// Frame `i`'s extraction.
-    pub fn get(&self, i: usize) -> Option<&Extracted> {
-        self.frames.get(i)
+    /// Frame `i`'s extraction, taken out of the file (`None` once taken). The grid's buckets
+    /// are not stored: they are rebuilt from the key points here, for frames a run uses.
+    pub fn take(&mut self, i: usize) -> Option<Extracted> {
+        let mut e = self.frames.get_mut(i)?.take()?;
+        e.m.grid = FeatureGrid::new(self.size.0, self.size.1, &e.m.keypoints);
+        Some(e)
     }
 }
