@@ -346,18 +346,31 @@ pub fn keyframe_depth_check(
     )
 }
 
+/// Cosine of the widest angle between a point's mean viewing direction and a view from which
+/// it is expected to be seen (ORB-SLAM's visibility cone, as in the tracker's projection
+/// search). Beyond it the point's surface is seen edge-on: a depth sensor reads nothing there
+/// (small `aliasing`: a corridor wall seen from the room at its end) and the readings nearby
+/// are of what lies behind, which is no contradiction.
+const MIN_VIEW_COS: f64 = 0.5;
+
 /// Points judged by keyframe `kf`'s depth readings from pose `pose_cw`, and those it saw
-/// clearly through (every reading near the projection is farther than the point).
+/// clearly through (every reading near the projection is farther than the point). Only points
+/// within their visibility cone ([`MIN_VIEW_COS`]) are judged.
 fn seen_through<'a>(
     geo: &crate::preprocess::ImageGeometry,
     kf: &crate::map::Keyframe,
     pose_cw: &Isometry3<f64>,
     points: impl Iterator<Item = &'a crate::map::MapPoint>,
 ) -> (usize, usize) {
+    let center = pose_cw.inverse().translation.vector;
     let (mut judged, mut contradicted) = (0, 0);
     for p in points {
         let pc = Map::in_camera(pose_cw, &p.position);
         if pc.z <= 0.1 {
+            continue;
+        }
+        let ray = p.position - center;
+        if ray.dot(&p.normal) < MIN_VIEW_COS * ray.norm() {
             continue;
         }
         let Some(uv) = geo.project_in_image(&pc) else {
