@@ -535,6 +535,30 @@ mod tests {
     }
 
     #[test]
+    fn points_seen_edge_on_are_not_judged() {
+        let geo = ImageGeometry::new(Intrinsics::TUM_FREIBURG1, 640, 480, 1.2, 8);
+        // The wall's points were observed from the side (mean viewing direction along x, a little
+        // from behind, so that every ray from the origin is more than 60° off it): from the
+        // origin their surface is edge-on, where a depth sensor reads nothing and the readings
+        // near them (3.5 m) are of what lies behind.
+        let mut map = Map::new(0);
+        add_wall_keyframe(&mut map, &geo, 0, 2.0);
+        let new = add_wall_keyframe(&mut map, &geo, 1, 3.5);
+        let seen_from = |map: &mut Map, dir: Vector3<f64>| {
+            for p in map.points.values_mut().filter(|p| p.first_kf != new) {
+                p.normal = dir.normalize();
+            }
+        };
+        seen_from(&mut map, Vector3::new(1.0, 0.0, -0.2));
+        assert_eq!(keyframe_depth_check(&geo, &map, new, |_| true), (0, 0));
+        // Observed from 45° off the new view: within the visibility cone, judged.
+        seen_from(&mut map, Vector3::new(1.0, 0.0, 1.0));
+        let (judged, through) = keyframe_depth_check(&geo, &map, new, |_| true);
+        assert!(judged >= 100, "judged {judged}");
+        assert_eq!(through, judged);
+    }
+
+    #[test]
     fn points_of_covisible_keyframes_are_not_judged() {
         let geo = ImageGeometry::new(Intrinsics::TUM_FREIBURG1, 640, 480, 1.2, 8);
         let mut map = Map::new(0);
