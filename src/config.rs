@@ -221,6 +221,11 @@ pub struct LoopClosingConfig {
     /// Two candidates agree when their implied alignments differ by at most this much.
     pub pool_max_translation_m: f64,
     pub pool_max_rotation_deg: f64,
+    /// A candidate is refused when its alignment differs from a rolled-back or refused pool's
+    /// (same two maps) by at most this much: the same hypothesis anchored on other keyframes,
+    /// whose relative poses carry the maps' local bending (up to ~6° in fast turns).
+    pub refused_max_translation_m: f64,
+    pub refused_max_rotation_deg: f64,
     /// Normalised chi-square per edge above which the map is inconsistent.
     pub max_normalized_chi2: f64,
     /// Pose-graph optimisation: Levenberg–Marquardt iterations (per phase).
@@ -268,6 +273,8 @@ impl Default for LoopClosingConfig {
             loop_pool_window_frames: 300,
             pool_max_translation_m: 0.1,
             pool_max_rotation_deg: 3.0,
+            refused_max_translation_m: 0.3,
+            refused_max_rotation_deg: 6.0,
             max_normalized_chi2: 3.0,
             pgo_iterations: 20,
             dcs_phi: 12.59,
@@ -630,6 +637,18 @@ impl Config {
         c.range(
             "loop_closing.pool_max_rotation_deg",
             l.pool_max_rotation_deg,
+            0.0,
+            180.0,
+        );
+        c.range(
+            "loop_closing.refused_max_translation_m",
+            l.refused_max_translation_m,
+            0.0,
+            100.0,
+        );
+        c.range(
+            "loop_closing.refused_max_rotation_deg",
+            l.refused_max_rotation_deg,
             0.0,
             180.0,
         );

@@ -16,7 +16,9 @@
 //!    alignment of the query's map onto the matched map (for a loop inside one map: the
 //!    correction of the drift). A closure is accepted only when `pool_size` valid candidates
 //!    from different query frames, within a window of recent frames, agree on that alignment.
-//!    Alignments of pools that were rolled back are remembered and refused.
+//!    Alignments of pools that were rolled back or refused are remembered, and candidates
+//!    within the wider refusal tolerances of one are refused (the same hypothesis anchored on
+//!    other keyframes of a bent map).
 //!
 //! The validator reports; the state machine decides what an accepted pool leads to.
 
@@ -581,6 +583,14 @@ impl Agreement {
         }
     }
 
+    /// The tolerances of "the same alignment as a refused one" (see [`Pool::is_refused`]).
+    pub fn refusal_from_config(cfg: &LoopClosingConfig) -> Self {
+        Self {
+            max_translation_m: cfg.refused_max_translation_m,
+            max_rotation_deg: cfg.refused_max_rotation_deg,
+        }
+    }
+
     /// Same rotation and translation within the tolerances, and (monocular) the same scale
     /// within [`POOL_MAX_LOG_SCALE`].
     pub fn agree(&self, a: &Sim3, b: &Sim3) -> bool {
@@ -749,6 +759,26 @@ mod tests {
         assert!(pool.is_refused(&valid(21, near), &agreement()));
         let far = Isometry3::new(Vector3::new(3.0, 0.0, 0.0), Vector3::zeros());
         assert!(!pool.is_refused(&valid(22, far), &agreement()));
+    }
+
+    /// The same wrong hypothesis anchored on another keyframe of a bent map (small `aliasing`
+    /// 3×2 s: 13 cm and 3.1° from the refused one) is refused, though it would not join the
+    /// refused pool; a different hypothesis (a correct merge 0.75 m away) is not.
+    #[test]
+    fn refusal_covers_the_same_hypothesis_on_other_keyframes() {
+        let cfg = crate::config::LoopClosingConfig::default();
+        let (pool_tol, refusal) = (
+            Agreement::from_config(&cfg),
+            Agreement::refusal_from_config(&cfg),
+        );
+        let mut pool = Pool::default();
+        pool.refuse(1, 0, Sim3::from_isometry(&Isometry3::identity()));
+        let rot = |deg: f64| Vector3::new(0.0, deg.to_radians(), 0.0);
+        let same = Isometry3::new(Vector3::new(0.13, 0.0, 0.0), rot(3.1));
+        assert!(pool.is_refused(&valid(30, same), &refusal));
+        assert!(!pool.is_refused(&valid(30, same), &pool_tol));
+        let other = Isometry3::new(Vector3::new(0.75, 0.0, 0.0), rot(3.6));
+        assert!(!pool.is_refused(&valid(31, other), &refusal));
     }
 
     #[test]

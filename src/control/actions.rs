@@ -758,10 +758,11 @@ impl StateMachine {
                 false
             }
             Verdict::Valid(v) => {
+                let same = Agreement::refusal_from_config(&self.cfg.loop_closing);
                 let refused = if kind == "loop" {
-                    self.loop_pool.is_refused(&v, &agreement)
+                    self.loop_pool.is_refused(&v, &same)
                 } else {
-                    self.reloc_pool.is_refused(&v, &agreement)
+                    self.reloc_pool.is_refused(&v, &same)
                 };
                 if refused {
                     let r = loop_validator::Rejection::RolledBackAlignment;
