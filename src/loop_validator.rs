@@ -562,7 +562,7 @@ pub struct Accepted {
 #[derive(Debug, Clone, Default)]
 pub struct Pool {
     recent: VecDeque<Valid>,
-    /// Alignments of pools that were rolled back, per (query map, match map).
+    /// Alignments of pools that were rolled back or refused, per (query map, match map).
     refused: Vec<(u32, u32, Sim3)>,
 }
 
@@ -612,7 +612,8 @@ impl Pool {
         self.recent.len()
     }
 
-    /// Whether `v` agrees with an alignment that was rolled back before.
+    /// Whether `v` agrees, within `agreement` (the refusal tolerances, wider than a pool's),
+    /// with an alignment that was rolled back or refused before.
     pub fn is_refused(&self, v: &Valid, agreement: &Agreement) -> bool {
         let a = v.alignment();
         self.refused
