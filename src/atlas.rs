@@ -353,6 +353,37 @@ impl Atlas {
         id
     }
 
+    /// Per standing loop pool, the standing merge pools of its map (older than it) whose seam
+    /// one of its closures crosses: one keyframe of the map merged into, the other of the map
+    /// merged or made after the merge (which continues the camera's path, and the merge
+    /// brought the camera over from the merged map). Such a loop re-measured what the merge
+    /// joined: if it was wrong, the merge that let it close is suspect too.
+    pub fn loops_across_merges(&self) -> BTreeMap<PoolId, Vec<PoolId>> {
+        let mut out: BTreeMap<PoolId, Vec<PoolId>> = BTreeMap::new();
+        for l in self.pools.iter().filter(|p| p.undoable()) {
+            let PoolKind::Loop { map, .. } = l.kind else {
+                continue;
+            };
+            for merge in self
+                .pools
+                .iter()
+                .filter(|p| p.undoable() && p.id < l.id && p.maps().contains(&map))
+            {
+                let Some((into, from)) = merge.merge_sides() else {
+                    continue;
+                };
+                let merged_side = |k: KfId| !into.contains(&k) || from.contains(&k);
+                if l.edges
+                    .iter()
+                    .any(|e| merged_side(e.query) != merged_side(e.matched))
+                {
+                    out.entry(l.id).or_default().push(merge.id);
+                }
+            }
+        }
+        out
+    }
+
     pub fn add_edges(&mut self, pool: PoolId, edges: impl IntoIterator<Item = ClosureEdge>) {
         if let Some(p) = self.pools.get_mut(pool as usize) {
             p.edges.extend(edges);
@@ -660,6 +691,55 @@ mod tests {
         assert!((x - s.transform_point(&x_before)).norm() < 1e-12);
         let pc = m.keyframes[&kf_b].pose_cw * Point3::from(x);
         assert!((pc - pc_before).norm() < 1e-12);
+    }
+
+    #[test]
+    fn a_loop_between_the_merged_sides_crosses_the_merge() {
+        let mut atlas = Atlas::new();
+        let a = small_map(&mut atlas, 0);
+        let b = small_map(&mut atlas, 1);
+        let ka = *atlas.maps[&a].keyframes.keys().next().unwrap();
+        let kb = *atlas.maps[&b].keyframes.keys().next().unwrap();
+        let merge = atlas.begin_pool(
+            PoolKind::Merge {
+                into: a,
+                from: b,
+                alignment: (&Sim3::identity()).into(),
+            },
+            5,
+            5.0,
+        );
+        atlas.merge(a, b, &Sim3::identity()).unwrap();
+        atlas.activate(a);
+        let map = atlas.maps.get_mut(&a).unwrap();
+        let later = map.add_keyframe(&measurement(6), Isometry3::identity());
+        let later2 = map.add_keyframe(&measurement(7), Isometry3::identity());
+        let loop_pool = |atlas: &mut Atlas, frame: usize, q: KfId, m: KfId| {
+            let p = atlas.begin_pool(
+                PoolKind::Loop {
+                    map: a,
+                    correction: (&Sim3::identity()).into(),
+                },
+                frame,
+                frame as f64,
+            );
+            let e = ClosureEdge::new(p, q, m, &Sim3::identity(), (1.0, 1.0), Matrix6::identity());
+            atlas.add_edges(p, [e]);
+            p
+        };
+        // Made after the merge, closing on the map merged into: across the seam.
+        let across = loop_pool(&mut atlas, 8, later, ka);
+        // From the merged map's side to it: across too.
+        let from_merged = loop_pool(&mut atlas, 9, kb, ka);
+        // Both ends on the merged side of the seam: not across.
+        let same_side = loop_pool(&mut atlas, 10, later2, kb);
+        let crossed = atlas.loops_across_merges();
+        assert_eq!(crossed.get(&across), Some(&vec![merge]));
+        assert_eq!(crossed.get(&from_merged), Some(&vec![merge]));
+        assert_eq!(crossed.get(&same_side), None);
+        // Once the merge is undone, nothing is across it.
+        atlas.rollback(merge).unwrap();
+        assert!(atlas.loops_across_merges().is_empty());
     }
 
     #[test]

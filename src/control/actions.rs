@@ -1269,6 +1269,7 @@ impl StateMachine {
             .filter(|p| !p.rolled_back)
             .map(|p| p.id)
             .collect();
+        let crossed = self.atlas.loops_across_merges();
         let recovered = if let Some((map, kf)) = self.contradicting_kf.take() {
             self.contradicting_keyframes = 0;
             self.recover_from_keyframe(map, kf)
@@ -1289,6 +1290,29 @@ impl StateMachine {
                 let found: BTreeSet<KfId> =
                     self.aliased.difference(&aliased_before).copied().collect();
                 self.undo_pools_anchored_at(&found);
+            }
+            // A wrong loop between the two sides of a standing merge re-measured what the
+            // merge joined, and it could only be closed there because the merge put the
+            // look-alike place next to the camera: the merge goes too (the case study with
+            // depth weighed by the sensor's noise: door C's wrong merge outlived the loop it
+            // led to, whose undo took the contradicting keyframe with it).
+            let wrong_loops: Vec<PoolId> = standing_before
+                .iter()
+                .copied()
+                .filter(|&p| {
+                    let rec = &self.atlas.pools[p as usize];
+                    rec.rolled_back && matches!(rec.kind, PoolKind::Loop { .. })
+                })
+                .collect();
+            for l in wrong_loops {
+                for &m in crossed.get(&l).into_iter().flatten() {
+                    if self.atlas.pools[m as usize].undoable() {
+                        tracing::info!(
+                            "pool {l}, a wrong loop, closed across merge pool {m}'s seam: the merge is undone too"
+                        );
+                        self.undo_pool(m);
+                    }
+                }
             }
             self.flags.consistent_map = true;
             self.suspects.clear();
