@@ -1296,16 +1296,13 @@ impl StateMachine {
             // look-alike place next to the camera: the merge goes too (the case study with
             // depth weighed by the sensor's noise: door C's wrong merge outlived the loop it
             // led to, whose undo took the contradicting keyframe with it).
-            let wrong_loops: Vec<PoolId> = standing_before
-                .iter()
-                .copied()
-                .filter(|&p| {
-                    let rec = &self.atlas.pools[p as usize];
-                    rec.rolled_back && matches!(rec.kind, PoolKind::Loop { .. })
-                })
-                .collect();
-            for l in wrong_loops {
-                for &m in crossed.get(&l).into_iter().flatten() {
+            // (`crossed` holds only loops standing before the recovery: one rolled back now
+            // was undone by it.)
+            for (&l, merges) in &crossed {
+                if !self.atlas.pools[l as usize].rolled_back {
+                    continue;
+                }
+                for &m in merges {
                     if self.atlas.pools[m as usize].undoable() {
                         tracing::info!(
                             "pool {l}, a wrong loop, closed across merge pool {m}'s seam: the merge is undone too"
