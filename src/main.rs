@@ -175,6 +175,15 @@ enum BenchCmd {
         /// Reduced grid: no perturbation and one kidnapping (a pipeline check).
         #[arg(long)]
         quick: bool,
+        /// Move every kidnapping's drops by this many seconds (under 0.5 either way; negative:
+        /// earlier), to see whether a verdict depends on where exactly the drops fall.
+        #[arg(
+            long,
+            default_value_t = 0.0,
+            allow_hyphen_values = true,
+            value_name = "SECONDS"
+        )]
+        drop_shift: f64,
         /// Output folder.
         #[arg(long, default_value = "out/robustness")]
         out: PathBuf,
@@ -388,6 +397,7 @@ fn main() {
             controller,
             jobs,
             quick,
+            drop_shift,
             out,
             config,
             case_study,
@@ -398,6 +408,7 @@ fn main() {
                 controllers: controller,
                 jobs: jobs.unwrap_or(0),
                 quick,
+                drop_shift,
                 out: out.clone(),
                 config,
                 case_study,

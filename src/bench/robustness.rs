@@ -45,6 +45,9 @@ pub const FAULT_SEED: u64 = 1;
 pub const DARK_SECONDS: f64 = 1.0;
 /// The issue's ATE target: a kidnapped run's ATE at most this times the unperturbed one.
 pub const ATE_TOLERANCE: f64 = 1.2;
+/// `--drop-shift` moves every drop by less than this (seconds): half the tracked time the grid
+/// keeps before, between and after drops, so a shifted setting still fits the sequence.
+pub const MAX_DROP_SHIFT_S: f64 = MIN_TRACKED_GAP_S / 2.0;
 
 /// What a perturbation is, for the report's verdicts.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
@@ -78,9 +81,14 @@ fn secs(v: f64) -> String {
     s.trim_end_matches('0').trim_end_matches('.').to_string()
 }
 
-/// Drops for `places` events of `len` seconds, evenly spread over `duration`; the reason when
-/// they do not fit.
-fn kidnap(places: usize, len: f64, duration: f64) -> std::result::Result<Perturbation, String> {
+/// Drops for `places` events of `len` seconds, evenly spread over `duration` and moved by
+/// `shift` seconds; the reason when they do not fit.
+fn kidnap(
+    places: usize,
+    len: f64,
+    duration: f64,
+    shift: f64,
+) -> std::result::Result<Perturbation, String> {
     let spacing = duration / (places + 1) as f64;
     let name = format!("kidnap-{places}x{}s", secs(len));
     if len > spacing - MIN_TRACKED_GAP_S {
@@ -97,15 +105,15 @@ fn kidnap(places: usize, len: f64, duration: f64) -> std::result::Result<Perturb
             100.0 * MAX_DROPPED_SHARE
         ));
     }
-    Ok(spread_drops(name, places, len, duration))
+    Ok(spread_drops(name, places, len, duration, shift))
 }
 
-/// `places` drops of `len` seconds centred at `i / (places + 1)` of `duration`.
-fn spread_drops(name: String, places: usize, len: f64, duration: f64) -> Perturbation {
+/// `places` drops of `len` seconds centred at `i / (places + 1)` of `duration`, plus `shift`.
+fn spread_drops(name: String, places: usize, len: f64, duration: f64, shift: f64) -> Perturbation {
     let spacing = duration / (places + 1) as f64;
     let mut args = Vec::new();
     for i in 1..=places {
-        let c = spacing * i as f64;
+        let c = spacing * i as f64 + shift;
         args.push("--drop".to_string());
         // Seconds from the first frame, millisecond precision: `--drop 4.5s:5.5s`.
         args.push(format!("{}s:{}s", secs(c - len / 2.0), secs(c + len / 2.0)));
@@ -119,8 +127,10 @@ fn spread_drops(name: String, places: usize, len: f64, duration: f64) -> Perturb
 
 /// The perturbation grid for a sequence with these frame time stamps. `quick`: none and one
 /// kidnapping (a pipeline check). `mono`: every run is monocular already, so there is no
-/// separate depth-suppressed row.
-pub fn grid(stamps: &[f64], quick: bool, mono: bool) -> Grid {
+/// separate depth-suppressed row. `drop_shift`: every kidnapping's drops moved by this many
+/// seconds (`--drop-shift`): whether a verdict holds when the drops fall a little earlier or
+/// later, which the evenly spread placement alone cannot show.
+pub fn grid(stamps: &[f64], quick: bool, mono: bool, drop_shift: f64) -> Grid {
     let mut g = Grid::default();
     let duration = match (stamps.first(), stamps.last()) {
         (Some(a), Some(b)) => b - a,
@@ -136,17 +146,23 @@ pub fn grid(stamps: &[f64], quick: bool, mono: bool) -> Grid {
         // data, too short for the fixed lengths).
         let p = KIDNAP_SECONDS
             .iter()
-            .find_map(|&l| kidnap(1, l, duration).ok())
+            .find_map(|&l| kidnap(1, l, duration, drop_shift).ok())
             .unwrap_or_else(|| {
                 let len = (duration / 6.0 * 1000.0).floor() / 1000.0;
-                spread_drops(format!("kidnap-1x{}s", secs(len)), 1, len, duration)
+                spread_drops(
+                    format!("kidnap-1x{}s", secs(len)),
+                    1,
+                    len,
+                    duration,
+                    drop_shift,
+                )
             });
         g.perturbations.push(p);
         return g;
     }
     for places in KIDNAP_PLACES {
         for len in KIDNAP_SECONDS {
-            match kidnap(places, len, duration) {
+            match kidnap(places, len, duration, drop_shift) {
                 Ok(p) => g.perturbations.push(p),
                 Err(why) => g.skipped.push(why),
             }
@@ -211,6 +227,8 @@ pub struct Options {
     pub jobs: usize,
     /// Reduced grid: none and one kidnapping.
     pub quick: bool,
+    /// Every kidnapping's drops moved by this many seconds (see `grid`); 0: evenly spread.
+    pub drop_shift: f64,
     pub out: PathBuf,
     /// Config file for every run.
     pub config: Option<PathBuf>,
@@ -427,6 +445,14 @@ pub fn robustness(o: &Options) -> Result<(Vec<Row>, String)> {
         None => std::env::current_exe()
             .map_err(|e| Error::invalid(format!("cannot find the homing binary: {e}")))?,
     };
+    if !(o.drop_shift.abs() < MAX_DROP_SHIFT_S) {
+        return Err(Error::invalid(format!(
+            "bench robustness: --drop-shift {} s: must be under {} s either way (the grid keeps {} s tracked around each drop)",
+            o.drop_shift,
+            secs(MAX_DROP_SHIFT_S),
+            secs(MIN_TRACKED_GAP_S)
+        )));
+    }
     let jobs = super::resolve_jobs(o.jobs);
     let abs = |p: &Path| std::path::absolute(p).unwrap_or_else(|_| p.to_path_buf());
     let out = abs(&o.out);
@@ -454,7 +480,7 @@ pub fn robustness(o: &Options) -> Result<(Vec<Row>, String)> {
         // Only the lists are read (images load lazily): the stamps the run will see.
         let seq = TumSequence::open(dir, 0, 0, 1.0, max_dt, o.mono)?;
         let stamps: Vec<f64> = seq.frames.iter().map(|f| f.t).collect();
-        let g = grid(&stamps, o.quick, o.mono);
+        let g = grid(&stamps, o.quick, o.mono, o.drop_shift);
         for p in &g.perturbations {
             for &c in &controllers {
                 let run_dir = out.join("runs").join(&name).join(&p.name).join(c.as_str());
@@ -565,7 +591,7 @@ pub fn robustness(o: &Options) -> Result<(Vec<Row>, String)> {
         });
         (rows, grid_s, cs)
     });
-    let mut md = markdown(&seqs, &rows, &controllers, o.mono);
+    let mut md = markdown(&seqs, &rows, &controllers, o.mono, o.drop_shift);
     let _ = writeln!(
         md,
         "\n{} runs in {grid_s:.1} s wall clock, {jobs} at a time on {} cores{}.",
@@ -856,13 +882,27 @@ fn find<'a>(rows: &'a [Row], seq: &str, pert: &str, ctrl: &str) -> Option<&'a Ro
         .find(|r| r.sequence == seq && r.perturbation == pert && r.controller == ctrl)
 }
 
-fn markdown(seqs: &[SeqInfo], rows: &[Row], controllers: &[ControllerKind], mono: bool) -> String {
+fn markdown(
+    seqs: &[SeqInfo],
+    rows: &[Row],
+    controllers: &[ControllerKind],
+    mono: bool,
+    drop_shift: f64,
+) -> String {
     let mut md = String::new();
     let _ = writeln!(
         md,
         "# Robustness benchmark{}\n",
         if mono { " (monocular)" } else { "" }
     );
+    if drop_shift != 0.0 {
+        let _ = writeln!(
+            md,
+            "Every kidnapping's drops are moved by {:+} s from their evenly spread places \
+             (`--drop-shift`).\n",
+            drop_shift
+        );
+    }
     let _ = writeln!(
         md,
         "Cells: ATE RMSE of the largest map (cm) / coverage: frames posed in the final largest \
@@ -1060,8 +1100,51 @@ mod tests {
     }
 
     #[test]
+    fn drop_shift_moves_every_drop_and_nothing_else() {
+        let even = grid(&stamps(300, 30.0), false, false, 0.0);
+        let later = grid(&stamps(300, 30.0), false, false, 0.25);
+        assert_eq!(even.perturbations.len(), later.perturbations.len());
+        assert_eq!(even.skipped, later.skipped);
+        for (a, b) in even.perturbations.iter().zip(&later.perturbations) {
+            assert_eq!(a.name, b.name);
+            if a.group != Group::Kidnap {
+                assert_eq!(a.args, b.args);
+            }
+        }
+        let k = &later.perturbations[4];
+        assert_eq!(k.name, "kidnap-2x1s");
+        assert_eq!(
+            k.args,
+            ["--drop", "3.072s:4.072s", "--drop", "6.394s:7.394s"]
+        );
+        let earlier = grid(&stamps(300, 30.0), false, false, -0.25);
+        assert_eq!(
+            earlier.perturbations[4].args,
+            ["--drop", "2.572s:3.572s", "--drop", "5.894s:6.894s"]
+        );
+    }
+
+    #[test]
+    fn a_drop_shift_of_half_a_second_is_refused() {
+        let o = Options {
+            sequences: vec![PathBuf::from("data/none")],
+            mono: false,
+            controllers: Vec::new(),
+            jobs: 1,
+            quick: true,
+            drop_shift: -MAX_DROP_SHIFT_S,
+            out: std::env::temp_dir().join("homing-drop-shift-refused"),
+            config: None,
+            case_study: None,
+            exe: None,
+        };
+        let err = robustness(&o).unwrap_err().to_string();
+        assert!(err.contains("--drop-shift"), "{err}");
+    }
+
+    #[test]
     fn grid_for_ten_seconds() {
-        let g = grid(&stamps(300, 30.0), false, false);
+        let g = grid(&stamps(300, 30.0), false, false, 0.0);
         let names: Vec<&str> = g.perturbations.iter().map(|p| p.name.as_str()).collect();
         assert_eq!(
             names,
@@ -1105,11 +1188,11 @@ mod tests {
 
     #[test]
     fn quick_grid_fits_short_sequences() {
-        let g = grid(&stamps(60, 10.0), true, false);
+        let g = grid(&stamps(60, 10.0), true, false, 0.0);
         assert_eq!(g.perturbations.len(), 2);
         assert_eq!(g.perturbations[1].name, "kidnap-1x1s");
         // 2.9 s: no fixed length fits, the middle sixth is dropped.
-        let g = grid(&stamps(30, 10.0), true, false);
+        let g = grid(&stamps(30, 10.0), true, false, 0.0);
         assert_eq!(g.perturbations[1].name, "kidnap-1x0.483s");
         assert_eq!(g.perturbations[1].args, ["--drop", "1.209s:1.692s"]);
     }
