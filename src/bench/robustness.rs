@@ -435,6 +435,14 @@ pub fn robustness(o: &Options) -> Result<(Vec<Row>, String)> {
     if o.sequences.is_empty() {
         return Err(Error::invalid("bench robustness: no --sequence given"));
     }
+    if !(o.drop_shift.abs() < MAX_DROP_SHIFT_S) {
+        return Err(Error::invalid(format!(
+            "bench robustness: --drop-shift {} s: must be under {} s either way (the grid keeps {} s tracked around each drop)",
+            o.drop_shift,
+            secs(MAX_DROP_SHIFT_S),
+            secs(MIN_TRACKED_GAP_S)
+        )));
+    }
     let controllers = if o.controllers.is_empty() {
         case_study::CONTROLLERS.to_vec()
     } else {
@@ -445,14 +453,6 @@ pub fn robustness(o: &Options) -> Result<(Vec<Row>, String)> {
         None => std::env::current_exe()
             .map_err(|e| Error::invalid(format!("cannot find the homing binary: {e}")))?,
     };
-    if !(o.drop_shift.abs() < MAX_DROP_SHIFT_S) {
-        return Err(Error::invalid(format!(
-            "bench robustness: --drop-shift {} s: must be under {} s either way (the grid keeps {} s tracked around each drop)",
-            o.drop_shift,
-            secs(MAX_DROP_SHIFT_S),
-            secs(MIN_TRACKED_GAP_S)
-        )));
-    }
     let jobs = super::resolve_jobs(o.jobs);
     let abs = |p: &Path| std::path::absolute(p).unwrap_or_else(|_| p.to_path_buf());
     let out = abs(&o.out);
