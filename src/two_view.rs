@@ -20,7 +20,7 @@
 //! keypoint: a planar scene is fitted by `F` as well as by `H` (any `[e']ₓH` is a valid `F`), and
 //! then the expected scores give `R_H ≈ 0.41` when both images carry σ-level noise (the 0.40
 //! threshold is a coin flip), `≈ 0.45` for a 1σ match residual, `≈ 0.48` for σ/2 per image
-//! (`tests/two_view.rs::planar_rh_depends_on_noise_relative_to_sigma`).
+//! (`tests/it/two_view.rs::planar_rh_depends_on_noise_relative_to_sigma`).
 //!
 //! Monocular loop closing needs a similarity (scale drifts), estimated by [`sim3_ransac`]
 //! as ORB-SLAM's `Sim3Solver` does: minimal 3-point sets, inliers by reprojection in both images.

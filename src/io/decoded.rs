@@ -5,7 +5,7 @@
 //! PNG decoding was a quarter of each 640×480 run's CPU time. The bench writes one file per
 //! sequence and hands it to its runs (`homing run --decoded-frames FILE`); a run reads frame
 //! `i` from it instead of decoding, and computes exactly what it computes from the PNGs (the
-//! bytes are the decoded frames themselves; `tests/decoded_frames.rs` compares the outputs).
+//! bytes are the decoded frames themselves; `tests/it/decoded_frames.rs` compares the outputs).
 //!
 //! Layout (little-endian): the magic, `u32` version, `u64` frame count, `u32` width and
 //! height, `u8` 1 when every frame has depth; the frames' time stamps (`f64` each); then one

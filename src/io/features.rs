@@ -8,7 +8,7 @@
 //! one file per sequence from its decoded frames and hands it to its runs (`homing run
 //! --features FILE`); a run takes the measurement of every unperturbed frame from it (depth
 //! cleared when the run is monocular) and extracts the others itself, and so computes exactly
-//! what it computes without the file (`tests/decoded_frames.rs` compares the outputs). The
+//! what it computes without the file (`tests/it/decoded_frames.rs` compares the outputs). The
 //! time each frame's extraction took when the file was written is kept with it, and a run
 //! counts it as its own, so ms/frame and the benchmark's fps still include extraction.
 //!

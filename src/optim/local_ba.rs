@@ -14,7 +14,7 @@
 //! factor on a rejected step. Fixed cameras and fixed points are constants, not variables.
 //!
 //! Cost: 10 keyframes × 2000 points × 10 000 observations take ≈ 2.8 ms per LM iteration in
-//! release on the 2-core dev machine (`ba_timing` in `tests/optim_local_ba.rs`).
+//! release on the 2-core dev machine (`ba_timing` in `tests/it/optim_local_ba.rs`).
 //!
 //! faer's sparse Cholesky runs with faer's global parallelism setting (rayon by default);
 //! the reduced systems of local BA are small enough that this rarely matters.

@@ -318,7 +318,7 @@ fn ba_degenerate_inputs() {
 }
 
 /// Timing: 10 keyframes × 2000 points × 10000 observations.
-/// `cargo test --release --test optim_local_ba -- --ignored ba_timing --nocapture`
+/// `cargo test --release --test it -- --ignored ba_timing --nocapture`
 #[test]
 #[ignore]
 fn ba_timing() {

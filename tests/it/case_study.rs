@@ -10,7 +10,7 @@
 use homing::bench::case_study::{self, Options};
 use homing::config::ControllerKind;
 
-mod common;
+use crate::common;
 
 #[test]
 fn ours_follows_table_ii_step_by_step() {

@@ -1,7 +1,7 @@
 //! `homing eval` against values computed once with evo 1.38.1 (commands in expected.json, made
 //! by tests/fixtures/eval/make_fixtures.py). The requirement is agreement to 1e-4 m; we check 1e-6.
 
-mod common;
+use crate::common;
 use homing::eval::{self, Alignment, RpeUnit};
 use homing::io::tum::read_trajectory;
 use serde_json::Value;

@@ -3,7 +3,7 @@
 //! belong to the sequence (or to the run's settings), or is cut short, is a clear error
 //! naming it.
 
-mod common;
+use crate::common;
 
 use homing::io::tum::{FrameSource, TumSequence};
 use homing::io::{decoded, features};

@@ -1,6 +1,6 @@
 //! The run-output contract and perturbations, end to end through `homing run`.
 
-mod common;
+use crate::common;
 use common::{homing, tum_folder};
 use serde_json::Value;
 use std::fs;

@@ -2,7 +2,7 @@
 //! folder; `--mcap-log` writes run.mcap that the mcap crate reads back; broken bags and wrong
 //! topics are clear errors naming the file, never panics.
 
-mod common;
+use crate::common;
 
 use homing::io::mcap::{
     CAMERA_INFO_TOPIC, DEPTH_TOPIC, McapTopics, RGB_TOPIC, pose_from_json, tum_to_mcap,

@@ -4,7 +4,7 @@
 use homing::atlas::{Atlas, AtlasCamera};
 use homing::system::{RunOptions, run};
 
-mod common;
+use crate::common;
 
 fn ate(s: &homing::output::Summary) -> f64 {
     s.evaluation.as_ref().unwrap()["ate"]["stats"]["rmse"]

@@ -4,7 +4,7 @@
 //! The full-size targets (fr1_xyz ≤ 1.5 cm, desk ≤ 1 % of the path) are measured with
 //! `homing run --mono --eval`; this test guards against regressions at test-suite cost.
 
-mod common;
+use crate::common;
 
 use homing::io::perturb::PerturbationSpec;
 use homing::system::{RunOptions, run};

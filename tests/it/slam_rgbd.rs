@@ -2,7 +2,7 @@
 //! The accuracy target of the full-size sequence (ATE ≤ 0.5 cm) is measured by the benchmark
 //! commands in the README; this test guards against regressions at test-suite cost.
 
-mod common;
+use crate::common;
 
 use homing::system::{RunOptions, run};
 use homing_datasets::scenarios;

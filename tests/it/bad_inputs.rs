@@ -1,6 +1,6 @@
 //! Bad inputs get a clear error naming the file (and line), never a panic.
 
-mod common;
+use crate::common;
 use common::{assert_clear_error, homing, tum_folder};
 use std::fs;
 

@@ -3,7 +3,7 @@
 //! row's command reproduces its trajectory byte for byte (the bench's runs read decoded
 //! frames, the re-run decodes the PNGs).
 
-mod common;
+use crate::common;
 
 use homing_datasets::{scenarios, sensor::SensorOptions, writer};
 use std::path::Path;
