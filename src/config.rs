@@ -86,7 +86,7 @@ pub struct OrbConfig {
     /// where OpenCV's pixel-centre-aligned resize puts it, instead of ORB-SLAM's `x·s` (up to
     /// 1.3 px up and left). Off by default: it makes tracking more accurate, and with less
     /// drift the merge depth check no longer refuses the look-alike merge of small `aliasing`
-    /// after a kidnapping (README, Robustness).
+    /// after a kidnapping (docs/robustness-notes.md).
     pub pixel_centre_levels: bool,
 }
 
