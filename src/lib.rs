@@ -11,6 +11,7 @@ pub mod aligner;
 pub mod atlas;
 pub mod bench;
 pub mod control;
+pub mod depth_registration;
 pub mod eval;
 pub mod geometry;
 pub mod global_optimizer;
