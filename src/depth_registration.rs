@@ -360,7 +360,10 @@ mod tests {
             "the corridor's length should be unconstrained: {:?}",
             dirs.iter().map(|d| d.0).collect::<Vec<_>>()
         );
-        assert!(v[3].abs() > 0.9, "weakest direction {v:?} is not the corridor's length");
+        assert!(
+            v[3].abs() > 0.9,
+            "weakest direction {v:?} is not the corridor's length"
+        );
     }
 
     /// Views that share no surface give no registration.
@@ -368,7 +371,12 @@ mod tests {
     fn no_shared_surface_no_registration() {
         let mut rng = ChaCha8Rng::seed_from_u64(3);
         let target = sample(&mut rng, &[(2, 0.0, (0.0, 2.0), (0.0, 2.0))], 3000, 0.002);
-        let source = sample(&mut rng, &[(2, 0.0, (10.0, 12.0), (10.0, 12.0))], 3000, 0.002);
+        let source = sample(
+            &mut rng,
+            &[(2, 0.0, (10.0, 12.0), (10.0, 12.0))],
+            3000,
+            0.002,
+        );
         let cfg = RegistrationConfig::default();
         let planes = PlaneMap::new(&target, &cfg);
         assert!(register(&planes, &source, &Isometry3::identity(), &cfg).is_none());
