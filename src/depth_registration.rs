@@ -185,8 +185,7 @@ pub fn register(
         let mut g = Vector6::<f64>::zeros();
         let (mut n, mut sq) = (0usize, 0.0);
         for p in source {
-            let q = t * nalgebra::Point3::from(*p);
-            let q = q.coords;
+            let q = t.transform_vector(p) + t.translation.vector;
             let Some((plane, r)) = target.nearest_plane(&q) else {
                 continue;
             };
@@ -227,14 +226,13 @@ pub fn register(
         }
     }
     let (h, n, sq) = last?;
-    let rms = (sq / n as f64).sqrt();
+    let mean_sq = sq / n as f64;
     // The residuals' own spread (floored at a millimetre) sets the scale of the information.
-    let sigma2 = (sq / n as f64).max(1e-6);
     Some(Registration {
         target_from_source: t,
         inliers: n,
-        rms_m: rms,
-        information: h / sigma2,
+        rms_m: mean_sq.sqrt(),
+        information: h / mean_sq.max(1e-6),
     })
 }
 
