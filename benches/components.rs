@@ -220,6 +220,7 @@ fn ba_problem() -> BaProblem {
             .collect(),
         observations,
         intrinsics: INTR,
+        pose_edges: Vec::new(),
     }
 }
 

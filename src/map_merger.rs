@@ -667,6 +667,7 @@ pub fn prepare_ba(
             .collect(),
         observations: Vec::new(),
         intrinsics: geo.intr,
+        pose_edges: Vec::new(),
     };
     let mut obs_ref: Vec<(PointId, KfId)> = Vec::new();
     for (pi, pid) in pts.iter().enumerate() {

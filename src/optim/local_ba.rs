@@ -61,6 +61,55 @@ pub struct BaObservation {
     pub shutter: Isometry3<f64>,
 }
 
+/// A measured relative pose between cameras `a` and `b` (indices into the problem's
+/// cameras): `a_from_b` ≈ `T_a · T_b⁻¹` (maps `b`'s camera frame into `a`'s), with
+/// information `info` over a left perturbation (ω, υ) of it. What a depth registration of
+/// surfaces two keyframes share without a common key point measures (see
+/// `crate::depth_registration`); directions the surfaces leave free carry no information.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BaPoseEdge {
+    pub a: usize,
+    pub b: usize,
+    pub a_from_b: Isometry3<f64>,
+    pub info: Matrix6<f64>,
+}
+
+impl BaPoseEdge {
+    /// χ² threshold of the Huber kernel on an edge (6 dof, 95 %).
+    const CHI2_THRESHOLD: f64 = 12.592;
+
+    /// The error `log(T_a · T_b⁻¹ · Z⁻¹)`: zero when the poses agree with the measurement.
+    fn residual(&self, pose_a: &Isometry3<f64>, pose_b: &Isometry3<f64>) -> Vector6<f64> {
+        se3::log(&(pose_a * pose_b.inverse() * self.a_from_b.inverse()))
+    }
+
+    fn chi2(&self, state: &State) -> f64 {
+        let r = self.residual(&state.poses[self.a], &state.poses[self.b]);
+        r.dot(&(self.info * r))
+    }
+
+    /// Residual and its Jacobians with respect to left perturbations of `T_a` and `T_b`
+    /// (central differences: two 6×6 blocks per edge, negligible beside the observations).
+    fn linearize(&self, state: &State) -> (Vector6<f64>, Matrix6<f64>, Matrix6<f64>) {
+        let (pa, pb) = (&state.poses[self.a], &state.poses[self.b]);
+        let r = self.residual(pa, pb);
+        let h = 1e-6;
+        let mut ja = Matrix6::zeros();
+        let mut jb = Matrix6::zeros();
+        for k in 0..6 {
+            let mut d = Vector6::zeros();
+            d[k] = h;
+            let ra = self.residual(&se3::retract(pa, &d), pb)
+                - self.residual(&se3::retract(pa, &-d), pb);
+            let rb = self.residual(pa, &se3::retract(pb, &d))
+                - self.residual(pa, &se3::retract(pb, &-d));
+            ja.set_column(k, &(ra / (2.0 * h)));
+            jb.set_column(k, &(rb / (2.0 * h)));
+        }
+        (r, ja, jb)
+    }
+}
+
 /// A bundle-adjustment problem; [`solve`] updates poses and points in place.
 #[derive(Debug, Clone, PartialEq)]
 pub struct BaProblem {
@@ -68,6 +117,8 @@ pub struct BaProblem {
     pub points: Vec<BaPoint>,
     pub observations: Vec<BaObservation>,
     pub intrinsics: Intrinsics,
+    /// Relative-pose edges between cameras, besides the observations (usually none).
+    pub pose_edges: Vec<BaPoseEdge>,
 }
 
 /// Solver settings.
@@ -148,6 +199,15 @@ pub enum BaError {
     },
     #[error("observation {0} has a non-positive or non-finite information weight")]
     BadInformation(usize),
+    #[error("pose edge {edge} joins cameras {a} and {b}, but there are {n} cameras (or a = b)")]
+    EdgeOutOfRange {
+        edge: usize,
+        a: usize,
+        b: usize,
+        n: usize,
+    },
+    #[error("pose edge {0} has a non-finite or non-symmetric information matrix")]
+    BadEdgeInformation(usize),
     #[error("camera {0} has a non-finite pose")]
     NonFinitePose(usize),
     #[error("point {0} has a non-finite position")]
@@ -174,6 +234,8 @@ struct Structure {
     blocks: Vec<(usize, usize)>,
     /// Index of the diagonal block of each free camera.
     diag_block: Vec<usize>,
+    /// Per pose edge, its off-diagonal block when both cameras are free.
+    edge_block: Vec<Option<usize>>,
     /// For each block and each of its 6 columns, the offset in the CSC values of its first
     /// row (rows are contiguous within a block column).
     block_offsets: Vec<[usize; 6]>,
@@ -255,6 +317,20 @@ impl Structure {
             }
         }
         pair_start.push(pairs.len());
+        let edge_block = problem
+            .pose_edges
+            .iter()
+            .map(|e| {
+                let (ca, cb) = (cam_var[e.a]?, cam_var[e.b]?);
+                let key = (ca.min(cb), ca.max(cb));
+                let next = blocks.len();
+                let b = *block_index.entry(key).or_insert(next);
+                if b == next {
+                    blocks.push(key);
+                }
+                Some(b)
+            })
+            .collect();
 
         // CSC layout of the upper triangle: block column cj holds its row blocks in
         // increasing ci; within a block column every scalar column has the same rows,
@@ -300,6 +376,7 @@ impl Structure {
             pairs,
             blocks,
             diag_block,
+            edge_block,
             block_offsets,
             symbolic,
             n_values,
@@ -315,6 +392,9 @@ struct NormalEquations {
     b_p: Vec<Vector3<f64>>,
     /// Camera–point block per observation (zero unless both are free).
     h_cp: Vec<Matrix6x3<f64>>,
+    /// Per pose edge, its block `(min camera, max camera)` of the reduced system (zero
+    /// unless [`Structure::edge_block`] has one).
+    h_edge: Vec<Matrix6<f64>>,
 }
 
 /// Current estimate of every camera and point (fixed ones included, unchanged).
@@ -343,9 +423,27 @@ fn robust_cost(chi2: f64, o: &BaObservation, use_huber: bool) -> f64 {
     }
 }
 
-/// Objective over the observations in `mask`; `None` if one of them became invalid.
+/// Robust cost of an edge's χ².
+fn edge_cost(chi2: f64, use_huber: bool) -> f64 {
+    if use_huber {
+        huber(chi2, BaPoseEdge::CHI2_THRESHOLD).0
+    } else {
+        chi2
+    }
+}
+
+/// Objective of the pose edges and their plain χ² sum.
+fn evaluate_edges(problem: &BaProblem, state: &State, use_huber: bool) -> (f64, f64) {
+    problem.pose_edges.iter().fold((0.0, 0.0), |(c, x), e| {
+        let chi2 = e.chi2(state);
+        (c + edge_cost(chi2, use_huber), x + chi2)
+    })
+}
+
+/// Objective over the observations in `mask` and the pose edges; `None` if an observation
+/// became invalid.
 fn evaluate(problem: &BaProblem, state: &State, mask: &[bool], use_huber: bool) -> Option<f64> {
-    let mut total = 0.0;
+    let mut total = evaluate_edges(problem, state, use_huber).0;
     for (o, _) in problem.observations.iter().zip(mask).filter(|(_, m)| **m) {
         total += robust_cost(obs_chi2(problem, state, o)?, o, use_huber);
     }
@@ -354,8 +452,7 @@ fn evaluate(problem: &BaProblem, state: &State, mask: &[bool], use_huber: bool) 
 
 /// Validity mask, objective and plain χ² sum at `state`.
 fn evaluate_all(problem: &BaProblem, state: &State, use_huber: bool) -> (Vec<bool>, f64, f64) {
-    let mut cost = 0.0;
-    let mut chi2_sum = 0.0;
+    let (mut cost, mut chi2_sum) = evaluate_edges(problem, state, use_huber);
     let mask = problem
         .observations
         .iter()
@@ -383,6 +480,7 @@ fn linearize(
         h_pp: vec![Matrix3::zeros(); st.n_point],
         b_p: vec![Vector3::zeros(); st.n_point],
         h_cp: vec![Matrix6x3::zeros(); problem.observations.len()],
+        h_edge: vec![Matrix6::zeros(); problem.pose_edges.len()],
     };
     for (k, o) in problem.observations.iter().enumerate() {
         let cv = st.cam_var[o.camera];
@@ -421,6 +519,34 @@ fn linearize(
             ne.b_p[p] += jpt * wr;
         }
     }
+    for (k, e) in problem.pose_edges.iter().enumerate() {
+        let (ca, cb) = (st.cam_var[e.a], st.cam_var[e.b]);
+        if ca.is_none() && cb.is_none() {
+            continue;
+        }
+        let (r, ja, jb) = e.linearize(state);
+        let w = if use_huber {
+            huber(r.dot(&(e.info * r)), BaPoseEdge::CHI2_THRESHOLD).1
+        } else {
+            1.0
+        };
+        let info = e.info * w;
+        if let Some(a) = ca {
+            ne.h_cc[a] += ja.transpose() * info * ja;
+            ne.b_c[a] += ja.transpose() * info * r;
+        }
+        if let Some(b) = cb {
+            ne.h_cc[b] += jb.transpose() * info * jb;
+            ne.b_c[b] += jb.transpose() * info * r;
+        }
+        if let (Some(a), Some(b)) = (ca, cb) {
+            if a < b {
+                ne.h_edge[k] = ja.transpose() * info * jb;
+            } else {
+                ne.h_edge[k] = jb.transpose() * info * ja;
+            }
+        }
+    }
     let max_diag = ne
         .h_cc
         .iter()
@@ -455,6 +581,11 @@ fn schur_step(
         let mut rhs: Vec<f64> = Vec::with_capacity(6 * st.n_cam);
         for c in 0..st.n_cam {
             blocks[st.diag_block[c]] = ne.h_cc[c] + Matrix6::identity() * lambda;
+        }
+        for (k, b) in st.edge_block.iter().enumerate() {
+            if let Some(b) = b {
+                blocks[*b] += ne.h_edge[k];
+            }
         }
         let mut rhs_c: Vec<Vector6<f64>> = ne.b_c.iter().map(|b| -b).collect();
         let mut y: Vec<Matrix6x3<f64>> = Vec::new();
@@ -562,6 +693,21 @@ fn validate(problem: &BaProblem) -> Result<(), BaError> {
         }
         if !(o.info > 0.0 && o.info.is_finite()) {
             return Err(BaError::BadInformation(k));
+        }
+    }
+    let n = problem.keyframes.len();
+    for (k, e) in problem.pose_edges.iter().enumerate() {
+        if e.a >= n || e.b >= n || e.a == e.b {
+            return Err(BaError::EdgeOutOfRange {
+                edge: k,
+                a: e.a,
+                b: e.b,
+                n,
+            });
+        }
+        let symmetric = (e.info - e.info.transpose()).norm() <= 1e-9 * e.info.norm().max(1.0);
+        if !(e.info.iter().all(|x| x.is_finite()) && symmetric) {
+            return Err(BaError::BadEdgeInformation(k));
         }
     }
     Ok(())
@@ -722,6 +868,7 @@ pub fn solve_with_outlier_rejection(
         points: problem.points.clone(),
         observations: Vec::with_capacity(problem.observations.len() - r1.outliers.len()),
         intrinsics: problem.intrinsics,
+        pose_edges: problem.pose_edges.clone(),
     };
     let mut outlier_iter = r1.outliers.iter().peekable();
     for (k, o) in problem.observations.iter().enumerate() {
@@ -830,6 +977,7 @@ mod tests {
             points,
             observations,
             intrinsics: INTR,
+            pose_edges: Vec::new(),
         };
         for k in problem.keyframes.iter_mut().filter(|k| !k.fixed) {
             let d = Vector6::from_fn(|_, _| rng.random_range(-0.03..0.03));
@@ -869,6 +1017,15 @@ mod tests {
                     .add_assign(&ne.h_cp[k].transpose());
             }
         }
+        for (k, e) in problem.pose_edges.iter().enumerate() {
+            if let (Some(a), Some(b)) = (st.cam_var[e.a], st.cam_var[e.b]) {
+                let (lo, hi) = (a.min(b), a.max(b));
+                h.view_mut((6 * lo, 6 * hi), (6, 6))
+                    .add_assign(&ne.h_edge[k]);
+                h.view_mut((6 * hi, 6 * lo), (6, 6))
+                    .add_assign(&ne.h_edge[k].transpose());
+            }
+        }
         h.cholesky()
             .expect("damped H is positive definite")
             .solve(&(-b))
@@ -876,10 +1033,29 @@ mod tests {
 
     use std::ops::AddAssign;
 
+    /// Pose edges between cameras 1–3 and 4–2 (measured from the unperturbed poses, so
+    /// slightly inconsistent with the perturbed start) and one to the fixed camera 0.
+    fn with_edges(mut problem: BaProblem, truth: &[Isometry3<f64>]) -> BaProblem {
+        for (a, b) in [(1, 3), (4, 2), (0, 4)] {
+            let info = Matrix6::from_fn(|i, j| if i == j { 1e4 } else { 10.0 });
+            problem.pose_edges.push(BaPoseEdge {
+                a,
+                b,
+                a_from_b: truth[a] * truth[b].inverse(),
+                info,
+            });
+        }
+        problem
+    }
+
     #[test]
     fn schur_step_equals_dense_solve() {
-        for seed in 0..3 {
-            let problem = small_problem(seed);
+        for seed in 0..6 {
+            let mut problem = small_problem(seed);
+            if seed >= 3 {
+                let truth: Vec<_> = problem.keyframes.iter().map(|k| k.pose_cw).collect();
+                problem = with_edges(problem, &truth);
+            }
             let (fixed, _) = fixed_cameras(&problem);
             let st = Structure::build(&problem, &fixed).unwrap();
             let state = State {
@@ -903,6 +1079,107 @@ mod tests {
                     "seed {seed} λ {lambda}: relative difference {err}"
                 );
             }
+        }
+    }
+
+    /// Two cameras that share no point: only the pose edge says where the second is. The
+    /// solve must put it there (its points move along) and the edge's χ² must vanish.
+    #[test]
+    fn pose_edge_places_a_camera_without_shared_points() {
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let truth = [
+            Isometry3::identity(),
+            Isometry3::new(Vector3::new(0.3, 0.0, 0.1), Vector3::new(0.0, 0.4, 0.0)).inverse(),
+        ];
+        let mut points = Vec::new();
+        let mut observations = Vec::new();
+        for c in 0..2 {
+            let pose_wc = truth[c].inverse();
+            for _ in 0..40 {
+                let pc = Vector3::new(
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(-0.8..0.8),
+                    rng.random_range(2.0..4.0),
+                );
+                observations.push(BaObservation {
+                    camera: c,
+                    point: points.len(),
+                    obs: Observation::Rgbd {
+                        uv: INTR.project(&pc).unwrap(),
+                        depth: pc.z,
+                    },
+                    info: 1.0,
+                    shutter: Isometry3::identity(),
+                });
+                points.push(BaPoint {
+                    position_w: (pose_wc * Point3::from(pc)).coords,
+                    fixed: false,
+                });
+            }
+        }
+        // The second camera and its points start 20 cm and 3° off together: their
+        // reprojection errors are zero there, so without the edge nothing moves them.
+        let offset = Isometry3::new(Vector3::new(0.2, -0.05, 0.1), Vector3::new(0.0, 0.05, 0.0));
+        let mut problem = BaProblem {
+            keyframes: vec![
+                BaCamera {
+                    pose_cw: truth[0],
+                    fixed: true,
+                },
+                BaCamera {
+                    pose_cw: truth[1] * offset.inverse(),
+                    fixed: false,
+                },
+            ],
+            points: points
+                .iter()
+                .enumerate()
+                .map(|(i, p)| BaPoint {
+                    position_w: if i >= 40 {
+                        (offset * Point3::from(p.position_w)).coords
+                    } else {
+                        p.position_w
+                    },
+                    fixed: false,
+                })
+                .collect(),
+            observations,
+            intrinsics: INTR,
+            pose_edges: Vec::new(),
+        };
+        let mut without = problem.clone();
+        solve(&mut without, &BaParams::default()).unwrap();
+        let off = |p: &BaProblem| {
+            (p.keyframes[1].pose_cw.inverse().translation.vector
+                - truth[1].inverse().translation.vector)
+                .norm()
+        };
+        assert!(off(&without) > 0.19, "no edge: {} m off", off(&without));
+        problem.pose_edges.push(BaPoseEdge {
+            a: 0,
+            b: 1,
+            a_from_b: truth[0] * truth[1].inverse(),
+            info: Matrix6::identity() * 1e4,
+        });
+        let report = solve(
+            &mut problem,
+            &BaParams {
+                iterations: 30,
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        assert!(
+            off(&problem) < 1e-4,
+            "with the edge: {} m off",
+            off(&problem)
+        );
+        let err = se3::log(&(problem.keyframes[1].pose_cw * truth[1].inverse())).norm();
+        assert!(err < 1e-4, "pose error {err}");
+        assert!(report.final_cost < 1e-4 * report.initial_cost);
+        // The points moved with their camera, back to where they are.
+        for i in 40..80 {
+            assert!((problem.points[i].position_w - points[i].position_w).norm() < 1e-3);
         }
     }
 

@@ -97,6 +97,7 @@ fn arc_scene(seed: u64, n_cams: usize, n_points: usize, obs_per_point: Option<us
             .collect(),
         observations,
         intrinsics: INTR,
+        pose_edges: Vec::new(),
     };
     Scene {
         problem,
@@ -291,6 +292,7 @@ fn ba_degenerate_inputs() {
         points: vec![],
         observations: vec![],
         intrinsics: INTR,
+        pose_edges: Vec::new(),
     };
     let r = solve(&mut empty, &BaParams::default()).unwrap();
     assert_eq!(r.iterations, 0);
