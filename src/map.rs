@@ -51,6 +51,10 @@ pub struct Keyframe {
     /// Frame poses and closure measurements kept relative to the keyframe are stored in its
     /// creation units and rescaled by this on use.
     pub units: f64,
+    /// The depth grid of the keyframe's frame ([`crate::preprocess::Measurement::surface`],
+    /// millimetres in its creation units; empty when monocular): what depth registration
+    /// aligns when no key point is shared.
+    pub surface: Vec<u16>,
 }
 
 impl Keyframe {
@@ -68,6 +72,7 @@ impl Keyframe {
             points: vec![None; m.keypoints.len()],
             covisibility: BTreeMap::new(),
             units: 1.0,
+            surface: m.surface.clone(),
         }
     }
 

@@ -79,6 +79,26 @@ pub struct Measurement {
     /// Depth in metres under each keypoint; 0 = none (no reading, or monocular).
     pub depth: Vec<f32>,
     pub grid: FeatureGrid,
+    /// The depth image sampled on a regular [`SURFACE_COLS`] × [`SURFACE_ROWS`] grid, row
+    /// by row, in millimetres (0 = no reading): the surfaces a keyframe saw, for depth
+    /// registration between keyframes that share no key point (`crate::depth_registration`).
+    /// Empty without depth. The rays of the samples are [`Preprocessor::surface_rays`].
+    pub surface: Vec<u16>,
+}
+
+/// Columns of the depth grid kept per frame ([`Measurement::surface`]): about 4 000
+/// samples, enough for a plane in every 15 cm cell of a wall 2 m away at 640 × 480 or 320 × 240.
+pub const SURFACE_COLS: usize = 80;
+/// Rows of the depth grid kept per frame.
+pub const SURFACE_ROWS: usize = 60;
+
+/// The pixel (raw image, level 0) of grid sample (`col`, `row`) in a `width` × `height`
+/// image: the centre of the grid cell.
+pub fn surface_pixel(col: usize, row: usize, width: u32, height: u32) -> Vector2<f64> {
+    Vector2::new(
+        (col as f64 + 0.5) * width as f64 / SURFACE_COLS as f64 - 0.5,
+        (row as f64 + 0.5) * height as f64 / SURFACE_ROWS as f64 - 0.5,
+    )
 }
 
 impl Measurement {
@@ -120,6 +140,7 @@ impl Measurement {
             depth: vec![depth; keypoints.len()],
             descriptors,
             keypoints,
+            surface: Vec::new(),
         }
     }
 }
@@ -334,6 +355,8 @@ pub struct Preprocessor {
     pub weak_passes: usize,
     /// Precomputed row extents of the circular orientation patch (OpenCV's `umax`).
     umax: Vec<i32>,
+    /// Undistorted normalised image coordinates (x/z, y/z) of every depth-grid sample.
+    surface_rays: Vec<Vector2<f64>>,
 }
 
 fn cv_err(what: &str) -> impl Fn(opencv::Error) -> Error + '_ {
@@ -368,7 +391,7 @@ impl Preprocessor {
         let scales = (0..cfg.n_levels)
             .map(|l| cfg.scale_factor.powi(l as i32))
             .collect();
-        Ok(Self {
+        let mut pre = Self {
             orb,
             cfg: cfg.clone(),
             camera: camera.clone(),
@@ -377,7 +400,26 @@ impl Preprocessor {
             scales,
             weak_passes: 0,
             umax: patch_umax(HALF_PATCH),
-        })
+            surface_rays: Vec::new(),
+        };
+        let pixels: Vec<Vector2<f64>> = (0..SURFACE_ROWS)
+            .flat_map(|r| {
+                (0..SURFACE_COLS).map(move |c| surface_pixel(c, r, camera.width, camera.height))
+            })
+            .collect();
+        pre.surface_rays = pre
+            .undistort(&pixels)?
+            .iter()
+            .map(|u| Vector2::new((u.x - camera.cx) / camera.fx, (u.y - camera.cy) / camera.fy))
+            .collect();
+        Ok(pre)
+    }
+
+    /// Undistorted normalised image coordinates (x/z, y/z) of the depth-grid samples of
+    /// [`Measurement::surface`], in the same order: sample `i` at depth `d` is the point
+    /// `d · (x, y, 1)` of the camera frame.
+    pub fn surface_rays(&self) -> &[Vector2<f64>] {
+        &self.surface_rays
     }
 
     /// Grayscale conversion: the `image` crate's luma, with ITU-R BT.709 weights (0.2126,
@@ -503,6 +545,26 @@ impl Preprocessor {
                 .collect(),
             None => vec![0.0; keypoints.len()],
         };
+        let surface = match &frame.depth {
+            Some(d) => (0..SURFACE_ROWS)
+                .flat_map(|r| (0..SURFACE_COLS).map(move |c| (c, r)))
+                .map(|(c, r)| {
+                    let p = surface_pixel(c, r, self.camera.width, self.camera.height);
+                    let (x, y) = (p.x.round() as u32, p.y.round() as u32);
+                    let z = if x < d.width && y < d.height {
+                        d.get(x, y)
+                    } else {
+                        0.0
+                    };
+                    if z.is_finite() && z > 0.0 {
+                        (z * 1000.0).round().clamp(1.0, u16::MAX as f32) as u16
+                    } else {
+                        0
+                    }
+                })
+                .collect(),
+            None => Vec::new(),
+        };
         let grid = FeatureGrid::new(self.camera.width, self.camera.height, &keypoints);
         Ok(Measurement {
             frame: frame.index,
@@ -511,6 +573,7 @@ impl Preprocessor {
             descriptors,
             depth,
             grid,
+            surface,
         })
     }
 

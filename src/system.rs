@@ -158,6 +158,7 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
         None => None,
     };
     let mut machine = StateMachine::new(&config, &camera, intr);
+    machine.set_surface_rays(pre.surface_rays());
     if opts.threaded {
         machine.set_threaded();
     }
@@ -223,6 +224,7 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
                 Some(mut e) => {
                     if spec.mono {
                         e.m.depth.iter_mut().for_each(|d| *d = 0.0);
+                        e.m.surface.clear();
                     }
                     pre.weak_passes += e.weak as usize;
                     timing.record("preprocess", e.ms);

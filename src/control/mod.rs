@@ -164,6 +164,9 @@ pub struct StateMachine {
     /// Which of the latest frame's keypoints the tracker matched to a map point (empty when it
     /// did not run); for the visualiser.
     pub track_matched: Vec<bool>,
+    /// Rays of the depth-grid samples ([`crate::preprocess::Preprocessor::surface_rays`]);
+    /// empty: no depth registration.
+    surface_rays: Vec<nalgebra::Vector2<f64>>,
 }
 
 impl StateMachine {
@@ -219,9 +222,16 @@ impl StateMachine {
             mono: config.sequence.mono,
             track_inliers: None,
             track_matched: Vec::new(),
+            surface_rays: Vec::new(),
             geo,
             spec,
         }
+    }
+
+    /// The rays of the frames' depth-grid samples, from the preprocessor: with them Final's
+    /// batch refinement can register keyframes by their depth (`crate::depth_registration`).
+    pub fn set_surface_rays(&mut self, rays: &[nalgebra::Vector2<f64>]) {
+        self.surface_rays = rays.to_vec();
     }
 
     /// Starts from a saved atlas (multi-session, Init's entry): its maps become the "other

@@ -26,7 +26,8 @@ use std::path::Path;
 use std::time::Instant;
 
 const MAGIC: &[u8; 16] = b"homing-features\0";
-const VERSION: u32 = 1;
+/// 2: measurements keep the depth grid (`Measurement::surface`).
+const VERSION: u32 = 2;
 
 /// One frame's extraction.
 #[derive(Debug, Clone, Serialize, Deserialize)]
