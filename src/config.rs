@@ -170,6 +170,12 @@ pub struct MappingConfig {
     /// the refined map by a motion-only BA. Localized makes no keyframes in known space, so
     /// without the frames the map keeps the precision of its first visit.
     pub final_ba_frame_interval_s: f64,
+    /// Final's BA also holds geometric edges between keyframes that view the same surfaces
+    /// without sharing a key point (the two sides of a merge's seam), from registering their
+    /// depth (`crate::depth_registration::seam_edges`). No effect without depth. Off by
+    /// default: from a guess several degrees off, a registration can settle in a wrong
+    /// minimum (see the module's measurements).
+    pub final_depth_edges: bool,
 }
 
 impl Default for MappingConfig {
@@ -183,6 +189,7 @@ impl Default for MappingConfig {
             local_ba_window: 10,
             final_ba_iterations: 10,
             final_ba_frame_interval_s: 0.2,
+            final_depth_edges: false,
         }
     }
 }

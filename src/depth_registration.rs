@@ -9,14 +9,24 @@
 //! only what the surfaces pin down: along a corridor without doors the length direction keeps
 //! (almost) no information, and its smallest eigenvalue says so.
 //!
-//! Not yet called by the pipeline: the building block of a geometric pose-graph edge between
-//! keyframes that share surfaces but no ORB view (what `loop`'s one-drop rows lack; next:
-//! keep a subsampled depth cloud per keyframe, pick overlapping keyframe groups across a
-//! merge's seam, and add the edges in `global_optimizer`).
+//! [`seam_edges`] finds, in one map, keyframes that view the same surfaces but are far apart
+//! in the covisibility graph (no key point joins them: the two sides of a merge's seam), and
+//! registers their depth grids ([`crate::map::Keyframe::surface`]); Final's batch refinement
+//! holds the resulting relative poses as edges of its bundle adjustment
+//! ([`crate::optim::BaPoseEdge`]) when `mapping.final_depth_edges` is on. This module
+//! measures; the state machine decides to use it.
+//!
+//! Off by default, measured on small `loop` (2026-11-27, `docs/robustness-notes.md`): the
+//! unperturbed run improves from 3.46 to 1.83 cm, one 1 s drop from 8.8 to 5.5 cm, but one drop
+//! of 2–5 s gets worse (12–14 → 20–24 cm): there the two legs' current relative pose is 5–6°
+//! off, and point-to-plane ICP from such a guess settles in a wrong minimum that the edge then
+//! enforces. An edge needs a registration that can tell a wrong minimum from the right one
+//! before it may be trusted by default.
 
+use crate::map::{KfId, Map};
 use crate::optim::se3;
-use nalgebra::{Isometry3, Matrix6, SymmetricEigen, Vector3, Vector6};
-use std::collections::HashMap;
+use nalgebra::{DMatrix, Isometry3, Matrix6, Point3, SymmetricEigen, Vector2, Vector3, Vector6};
+use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet, VecDeque};
 
 /// Settings of a registration.
 #[derive(Clone, Debug)]
@@ -57,6 +67,8 @@ impl Default for RegistrationConfig {
 struct Plane {
     centroid: Vector3<f64>,
     normal: Vector3<f64>,
+    /// The normal points to the side the surface was seen from (see [`PlaneMap::seen_from`]).
+    oriented: bool,
 }
 
 /// The target's planes, one per planar cell.
@@ -68,6 +80,26 @@ pub struct PlaneMap {
 impl PlaneMap {
     /// Fits a plane in every cell of `points` that holds enough of them and is flat.
     pub fn new(points: &[Vector3<f64>], cfg: &RegistrationConfig) -> Self {
+        Self::build(points, None, cfg)
+    }
+
+    /// [`Self::new`] with, for every point, the unit direction from it to the camera that
+    /// saw it: each plane then knows which side it was seen from, and a source point seen
+    /// from the other side does not land on it. The two faces of a wall are a wall's
+    /// thickness apart; without this a registration matches one face to the other.
+    pub fn seen_from(
+        points: &[Vector3<f64>],
+        views: &[Vector3<f64>],
+        cfg: &RegistrationConfig,
+    ) -> Self {
+        Self::build(points, Some(views), cfg)
+    }
+
+    fn build(
+        points: &[Vector3<f64>],
+        views: Option<&[Vector3<f64>]>,
+        cfg: &RegistrationConfig,
+    ) -> Self {
         let mut groups: HashMap<(i64, i64, i64), Vec<usize>> = HashMap::new();
         for (i, p) in points.iter().enumerate() {
             groups.entry(cell(p, cfg.voxel_m)).or_default().push(i);
@@ -94,8 +126,25 @@ impl PlaneMap {
             if l1 <= 0.0 || l0 > cfg.max_planarity * l1 {
                 continue;
             }
-            let normal = eig.eigenvectors.column(order[0]).into_owned().normalize();
-            cells.insert(key, Plane { centroid, normal });
+            let mut normal = eig.eigenvectors.column(order[0]).into_owned().normalize();
+            if let Some(v) = views {
+                let toward: Vector3<f64> = members.iter().map(|&i| v[i]).sum();
+                if normal.dot(&toward) < 0.0 {
+                    normal = -normal;
+                }
+                // Seen from both sides (a thin panel) or edge-on: no side to keep.
+                if normal.dot(&toward).abs() < 0.1 * members.len() as f64 {
+                    continue;
+                }
+            }
+            cells.insert(
+                key,
+                Plane {
+                    centroid,
+                    normal,
+                    oriented: views.is_some(),
+                },
+            );
         }
         Self {
             voxel_m: cfg.voxel_m,
@@ -114,17 +163,26 @@ impl PlaneMap {
     }
 
     /// The plane nearest to `p` among its cell's and the 26 neighbouring cells' (a guess up
-    /// to a cell off still finds its surface), with the signed point-to-plane distance.
-    fn nearest_plane(&self, p: &Vector3<f64>) -> Option<(&Plane, f64)> {
+    /// to a cell off still finds its surface), with its cell and the signed point-to-plane
+    /// distance.
+    fn nearest_plane(
+        &self,
+        p: &Vector3<f64>,
+        view: Option<&Vector3<f64>>,
+    ) -> Option<(&Plane, (i64, i64, i64), f64)> {
         let (x, y, z) = cell(p, self.voxel_m);
-        let mut best: Option<(&Plane, f64)> = None;
+        let mut best: Option<(&Plane, (i64, i64, i64), f64)> = None;
         for dx in -1..=1 {
             for dy in -1..=1 {
                 for dz in -1..=1 {
-                    if let Some(pl) = self.cells.get(&(x + dx, y + dy, z + dz)) {
+                    let key = (x + dx, y + dy, z + dz);
+                    if let Some(pl) = self.cells.get(&key) {
+                        if pl.oriented && view.is_some_and(|v| v.dot(&pl.normal) <= 0.0) {
+                            continue;
+                        }
                         let r = pl.normal.dot(&(p - pl.centroid));
-                        if best.is_none_or(|(_, b)| r.abs() < b.abs()) {
-                            best = Some((pl, r));
+                        if best.is_none_or(|(_, _, b)| r.abs() < b.abs()) {
+                            best = Some((pl, key, r));
                         }
                     }
                 }
@@ -149,6 +207,8 @@ pub struct Registration {
     pub target_from_source: Isometry3<f64>,
     /// Correspondences used in the last iteration.
     pub inliers: usize,
+    /// Distinct target planes they landed on.
+    pub planes: usize,
     /// Root mean square of their point-to-plane residuals (m).
     pub rms_m: f64,
     /// Information of a left perturbation δ = (ω, υ) of `target_from_source`: the Hessian
@@ -178,20 +238,37 @@ pub fn register(
     initial: &Isometry3<f64>,
     cfg: &RegistrationConfig,
 ) -> Option<Registration> {
+    register_within(target, source, None, initial, cfg, None)
+}
+
+/// [`register`], moving only within the span of `basis`'s columns (perturbation directions)
+/// when given: the other directions keep the guess.
+fn register_within(
+    target: &PlaneMap,
+    source: &[Vector3<f64>],
+    views: Option<&[Vector3<f64>]>,
+    initial: &Isometry3<f64>,
+    cfg: &RegistrationConfig,
+    basis: Option<&DMatrix<f64>>,
+) -> Option<Registration> {
     let mut t = *initial;
-    let mut last: Option<(Matrix6<f64>, usize, f64)> = None;
+    let mut last: Option<(Matrix6<f64>, usize, f64, usize)> = None;
+    let mut used = HashSet::new();
     for _ in 0..cfg.iterations {
         let mut h = Matrix6::<f64>::zeros();
         let mut g = Vector6::<f64>::zeros();
         let (mut n, mut sq) = (0usize, 0.0);
-        for p in source {
+        used.clear();
+        for (i, p) in source.iter().enumerate() {
             let q = t.transform_vector(p) + t.translation.vector;
-            let Some((plane, r)) = target.nearest_plane(&q) else {
+            let view = views.map(|v| t.rotation * v[i]);
+            let Some((plane, key, r)) = target.nearest_plane(&q, view.as_ref()) else {
                 continue;
             };
             if r.abs() > cfg.max_residual_m {
                 continue;
             }
+            used.insert(key);
             // Left perturbation: exp(δ)·q ≈ q + ω × q + υ, and n·(ω × q) = ω·(q × n).
             let qn = q.cross(&plane.normal);
             let j = Vector6::new(
@@ -215,25 +292,367 @@ pub fn register(
         if n < cfg.min_inliers {
             return None;
         }
-        last = Some((h, n, sq));
+        last = Some((h, n, sq, used.len()));
         // Levenberg damping keeps the unconstrained directions where they are.
         let floor = 1e-6 * h.trace() + 1e-12;
         let damped = h + Matrix6::from_diagonal(&h.diagonal().map(|d| 1e-3 * d + floor));
-        let delta = -damped.cholesky()?.solve(&g);
+        let delta = match basis {
+            None => -damped.cholesky()?.solve(&g),
+            Some(b) => {
+                let hb = b.transpose() * damped * b;
+                let gb = b.transpose() * g;
+                let x = -hb.cholesky()?.solve(&gb);
+                Vector6::from_iterator((b * x).iter().copied())
+            }
+        };
         t = se3::exp(&delta) * t;
         if delta.norm() < 1e-7 {
             break;
         }
     }
-    let (h, n, sq) = last?;
+    let (h, n, sq, planes) = last?;
     let mean_sq = sq / n as f64;
     // The residuals' own spread (floored at a millimetre) sets the scale of the information.
     Some(Registration {
         target_from_source: t,
         inliers: n,
+        planes,
         rms_m: mean_sq.sqrt(),
         information: h / mean_sq.max(1e-6),
     })
+}
+
+/// The points (camera frame, metres) of a keyframe's depth grid `surface` (millimetres, see
+/// [`crate::preprocess::Measurement::surface`]) along their `rays`, up to `max_depth_m`
+/// (the sensor's noise grows with the square of the depth).
+pub fn surface_points(
+    surface: &[u16],
+    rays: &[Vector2<f64>],
+    max_depth_m: f64,
+) -> Vec<Vector3<f64>> {
+    surface
+        .iter()
+        .zip(rays)
+        .filter(|(d, _)| **d > 0)
+        .map(|(d, r)| *d as f64 * 1e-3 * Vector3::new(r.x, r.y, 1.0))
+        .filter(|p| p.z <= max_depth_m)
+        .collect()
+}
+
+/// How [`seam_edges`] looks for keyframes to register.
+#[derive(Clone, Debug)]
+pub struct EdgeSearch {
+    /// Edge of the cells (m) in which two keyframes' surfaces are compared: a pair is a
+    /// candidate when they see surfaces in at least `min_shared_cells` common cells.
+    pub overlap_voxel_m: f64,
+    pub min_shared_cells: usize,
+    /// Fewest covisibility-graph hops between the two keyframes: closer ones are already
+    /// joined by shared key points.
+    pub min_hops: usize,
+    /// Each side registers the keyframe and up to this many of its best covisible keyframes
+    /// together (one view of a corridor's end holds too few planes).
+    pub group: usize,
+    /// Edges per map at most.
+    pub max_edges: usize,
+    /// Registrations tried per map at most.
+    pub max_registrations: usize,
+    /// The source group is subsampled to about this many points.
+    pub max_source_points: usize,
+    /// A registration that moves the keyframes' current relative pose by more than this (m,
+    /// degrees) is not trusted: point-to-plane ICP converges only from close guesses.
+    pub max_correction_m: f64,
+    pub max_correction_deg: f64,
+    /// Surface points beyond this depth are left out (m).
+    pub max_depth_m: f64,
+    /// Directions whose information is below this share of the strongest one are left
+    /// free (a corridor's length): the edge keeps the current estimate there, and no weight.
+    pub min_information_ratio: f64,
+    /// The edge weighs as much as this many independent point-to-plane residuals: a
+    /// registration's errors are systematic (the groups' own poses, the plane fits), not
+    /// independent per point, so its thousands of points would make it overconfident.
+    pub information_points: f64,
+    /// First registration (correspondences up to this far, m), from the current estimate;
+    /// `registration` then refines from its result.
+    pub coarse_residual_m: f64,
+    pub registration: RegistrationConfig,
+}
+
+impl Default for EdgeSearch {
+    fn default() -> Self {
+        Self {
+            overlap_voxel_m: 0.25,
+            min_shared_cells: 20,
+            min_hops: 6,
+            group: 6,
+            max_edges: 12,
+            max_registrations: 24,
+            max_source_points: 6000,
+            max_correction_m: 0.3,
+            max_correction_deg: 5.0,
+            max_depth_m: 4.0,
+            min_information_ratio: 1e-3,
+            information_points: 25.0,
+            coarse_residual_m: 0.3,
+            registration: RegistrationConfig::default(),
+        }
+    }
+}
+
+/// A geometric edge between keyframes `a` and `b` of one map: their depth grids registered.
+#[derive(Clone, Debug)]
+pub struct DepthEdge {
+    pub a: KfId,
+    pub b: KfId,
+    /// `T_a · T_b⁻¹` as the surfaces measure it.
+    pub a_from_b: Isometry3<f64>,
+    /// Over a left perturbation (ω, υ) of `a_from_b`: the registration's information, scaled
+    /// from its points to the planes they landed on (points on one plane share its error).
+    pub information: Matrix6<f64>,
+    pub registration: Registration,
+    /// How far the edge moves the keyframes' relative pose (m, degrees).
+    pub correction_m: f64,
+    pub correction_deg: f64,
+    /// Directions (of 6) the edge constrains.
+    pub constrained: usize,
+}
+
+/// The edge of registration `r` from the guess `guess`: only the directions the surfaces
+/// constrain keep the registration's correction and information; the others keep the
+/// guess, with no information, so that an edge along a corridor leaves its length to the rest
+/// of the map. Rotations are weighed against translations as arcs at the length that gives
+/// both blocks of the information the same trace (the points' lever arm), and a direction
+/// is constrained when its information is at least [`EdgeSearch::min_information_ratio`] of
+/// the strongest.
+fn constrained_edge(
+    a: KfId,
+    b: KfId,
+    guess: &Isometry3<f64>,
+    free: Registration,
+    target: &PlaneMap,
+    (source, views): (&[Vector3<f64>], &[Vector3<f64>]),
+    search: &EdgeSearch,
+) -> Option<DepthEdge> {
+    let (s, _) = balance(&free.information)?;
+    let eig = SymmetricEigen::new(s * free.information * s);
+    let top = eig.eigenvalues.max();
+    let kept: Vec<usize> = (0..6)
+        .filter(|&i| eig.eigenvalues[i] >= search.min_information_ratio * top)
+        .collect();
+    // The constrained directions, as perturbations: registered again from the guess moving
+    // only along them (a slide along the free direction would leak into the others).
+    let basis = DMatrix::from_fn(6, kept.len(), |r, c| {
+        (s * eig.eigenvectors.column(kept[c]).into_owned())[r]
+    });
+    let r = register_within(
+        target,
+        source,
+        Some(views),
+        guess,
+        &search.registration,
+        Some(&basis),
+    )?;
+    let (s, s_inv) = balance(&r.information)?;
+    let eig = SymmetricEigen::new(s * r.information * s);
+    let mut order: Vec<usize> = (0..6).collect();
+    order.sort_by(|&i, &j| eig.eigenvalues[j].total_cmp(&eig.eigenvalues[i]));
+    let scale = search.information_points / r.inliers as f64;
+    let mut balanced = Matrix6::zeros();
+    for &i in order.iter().take(kept.len()) {
+        let v = eig.eigenvectors.column(i);
+        balanced += v * v.transpose() * (eig.eigenvalues[i] * scale);
+    }
+    let correction = r.target_from_source * guess.inverse();
+    Some(DepthEdge {
+        a,
+        b,
+        a_from_b: r.target_from_source,
+        information: s_inv * balanced * s_inv,
+        correction_m: correction.translation.vector.norm(),
+        correction_deg: correction.rotation.angle().to_degrees(),
+        constrained: kept.len(),
+        registration: r,
+    })
+}
+
+/// `S` and `S⁻¹` with `δ = S·δ'`, where `δ'` measures rotations as arcs at the length that
+/// gives the information's rotation and translation blocks the same trace (the points'
+/// lever arm). None for an information without both.
+fn balance(info: &Matrix6<f64>) -> Option<(Matrix6<f64>, Matrix6<f64>)> {
+    let rot = info.fixed_view::<3, 3>(0, 0).trace();
+    let trans = info.fixed_view::<3, 3>(3, 3).trace();
+    if !(rot > 0.0 && trans > 0.0 && rot.is_finite() && trans.is_finite()) {
+        return None;
+    }
+    let l = (rot / trans).sqrt();
+    let d = |x: f64| Matrix6::from_diagonal(&Vector6::new(x, x, x, 1.0, 1.0, 1.0));
+    Some((d(1.0 / l), d(l)))
+}
+
+/// Keyframes within `hops - 1` covisibility hops of `kf` (itself included).
+fn near(map: &Map, kf: KfId, hops: usize) -> BTreeSet<KfId> {
+    let mut seen = BTreeSet::from([kf]);
+    let mut queue = VecDeque::from([(kf, 0usize)]);
+    while let Some((k, d)) = queue.pop_front() {
+        if d + 1 >= hops {
+            continue;
+        }
+        for o in map.keyframes[&k].covisibility.keys() {
+            if map.keyframes.contains_key(o) && seen.insert(*o) {
+                queue.push_back((*o, d + 1));
+            }
+        }
+    }
+    seen
+}
+
+/// The depth points of `kf` and its best `group` covisible keyframes, in `kf`'s camera frame
+/// (placed by their current poses, which are accurate locally), with the unit direction from
+/// each point to the camera that saw it.
+fn group_points(
+    map: &Map,
+    kf: KfId,
+    points: &BTreeMap<KfId, Vec<Vector3<f64>>>,
+    group: usize,
+) -> (Vec<Vector3<f64>>, Vec<Vector3<f64>>) {
+    let k = &map.keyframes[&kf];
+    let (mut out, mut views) = (Vec::new(), Vec::new());
+    for o in std::iter::once(kf).chain(k.best_covisible(group)) {
+        let Some(ps) = points.get(&o) else { continue };
+        let k_from_o = k.pose_cw * map.keyframes[&o].pose_cw.inverse();
+        let centre = k_from_o.translation.vector;
+        for p in ps {
+            let q = (k_from_o * Point3::from(*p)).coords;
+            out.push(q);
+            views.push((centre - q).normalize());
+        }
+    }
+    (out, views)
+}
+
+/// Geometric edges of `map`: pairs of keyframes at least [`EdgeSearch::min_hops`] apart in the
+/// covisibility graph whose views overlap (by their current poses), registered by their depth
+/// grids (`rays` from [`crate::preprocess::Preprocessor::surface_rays`]). Best overlaps
+/// first; a pair next to an edge already found (both ends within one hop) is skipped.
+pub fn seam_edges(map: &Map, rays: &[Vector2<f64>], search: &EdgeSearch) -> Vec<DepthEdge> {
+    let points: BTreeMap<KfId, Vec<Vector3<f64>>> = map
+        .keyframes
+        .iter()
+        .filter(|(_, k)| k.surface.len() == rays.len() && !rays.is_empty())
+        .map(|(id, k)| (*id, surface_points(&k.surface, rays, search.max_depth_m)))
+        .collect();
+    // The cells each keyframe sees surfaces in, in world coordinates.
+    let cells: BTreeMap<KfId, HashSet<(i64, i64, i64)>> = points
+        .iter()
+        .map(|(id, ps)| {
+            let wc = map.keyframes[id].pose_cw.inverse();
+            let set = ps
+                .iter()
+                .map(|p| cell(&(wc * Point3::from(*p)).coords, search.overlap_voxel_m))
+                .collect();
+            (*id, set)
+        })
+        .collect();
+    let ids: Vec<KfId> = points.keys().copied().collect();
+    let mut candidates: Vec<(usize, KfId, KfId)> = Vec::new();
+    for (i, &a) in ids.iter().enumerate() {
+        let mut close: Option<BTreeSet<KfId>> = None;
+        for &b in &ids[i + 1..] {
+            let (ca, cb) = (&cells[&a], &cells[&b]);
+            let (small, large) = if ca.len() <= cb.len() {
+                (ca, cb)
+            } else {
+                (cb, ca)
+            };
+            let shared = small.iter().filter(|c| large.contains(c)).count();
+            if shared < search.min_shared_cells {
+                continue;
+            }
+            if close
+                .get_or_insert_with(|| near(map, a, search.min_hops))
+                .contains(&b)
+            {
+                continue;
+            }
+            candidates.push((shared, a, b));
+        }
+    }
+    tracing::debug!(
+        "depth registration of map {}: {} of {} keyframes with depth, {} candidate pairs",
+        map.id,
+        points.len(),
+        map.keyframes.len(),
+        candidates.len()
+    );
+    candidates.sort_by(|x, y| y.0.cmp(&x.0).then((x.1, x.2).cmp(&(y.1, y.2))));
+    let mut edges: Vec<DepthEdge> = Vec::new();
+    // Pairs registered so far: a pair next to one of them (both ends within one hop) would
+    // register nearly the same groups again.
+    let mut tried: Vec<(KfId, KfId)> = Vec::new();
+    let mut neighbourhood: HashMap<KfId, BTreeSet<KfId>> = HashMap::new();
+    let mut hood = |k: KfId| {
+        neighbourhood
+            .entry(k)
+            .or_insert_with(|| near(map, k, 2))
+            .clone()
+    };
+    for (_, a, b) in candidates {
+        if edges.len() >= search.max_edges {
+            break;
+        }
+        let (ha, hb) = (hood(a), hood(b));
+        if tried
+            .iter()
+            .any(|(ta, tb)| ha.contains(ta) && hb.contains(tb))
+        {
+            continue;
+        }
+        tried.push((a, b));
+        if tried.len() > search.max_registrations {
+            break;
+        }
+        let (tp, tv) = group_points(map, a, &points, search.group);
+        let target = PlaneMap::seen_from(&tp, &tv, &search.registration);
+        let (sp, sv) = group_points(map, b, &points, search.group);
+        let stride = sp.len().div_ceil(search.max_source_points).max(1);
+        let source: Vec<Vector3<f64>> = sp.into_iter().step_by(stride).collect();
+        let views: Vec<Vector3<f64>> = sv.into_iter().step_by(stride).collect();
+        let guess = map.keyframes[&a].pose_cw * map.keyframes[&b].pose_cw.inverse();
+        let coarse = RegistrationConfig {
+            max_residual_m: search.coarse_residual_m,
+            huber_m: search.coarse_residual_m / 5.0,
+            ..search.registration.clone()
+        };
+        let reg = |from: &Isometry3<f64>, cfg: &RegistrationConfig| {
+            register_within(&target, &source, Some(&views), from, cfg, None)
+        };
+        let Some(r) =
+            reg(&guess, &coarse).and_then(|c| reg(&c.target_from_source, &search.registration))
+        else {
+            continue;
+        };
+        let Some(edge) = constrained_edge(a, b, &guess, r, &target, (&source, &views), search)
+        else {
+            continue;
+        };
+        tracing::debug!(
+            "depth registration kf {a} (t {:.3}) <- kf {b} (t {:.3}): {} inliers on {} planes, rms {:.1} mm, moved {:.1} cm {:.2}° in {} constrained directions",
+            map.keyframes[&a].t,
+            map.keyframes[&b].t,
+            edge.registration.inliers,
+            edge.registration.planes,
+            1e3 * edge.registration.rms_m,
+            1e2 * edge.correction_m,
+            edge.correction_deg,
+            edge.constrained
+        );
+        if edge.correction_m > search.max_correction_m
+            || edge.correction_deg > search.max_correction_deg
+        {
+            continue;
+        }
+        edges.push(edge);
+    }
+    edges
 }
 
 #[cfg(test)]
@@ -378,5 +797,115 @@ mod tests {
         let cfg = RegistrationConfig::default();
         let planes = PlaneMap::new(&target, &cfg);
         assert!(register(&planes, &source, &Isometry3::identity(), &cfg).is_none());
+    }
+
+    /// A corridor (x from 0 to 10 m, walls at y = ±1, floor and ceiling) walked out (leg A,
+    /// looking +x) and back (leg B, looking −x): the legs share no key point but see the
+    /// same walls. Leg B's estimate is 8 cm off sideways and 1° off in heading. The edges
+    /// found must restore the sideways offset and the heading, and leave the corridor's length
+    /// without information.
+    #[test]
+    fn seam_edges_join_the_legs_of_a_corridor() {
+        use crate::optim::Intrinsics;
+        use crate::preprocess::{Measurement, SURFACE_COLS, SURFACE_ROWS, surface_pixel};
+        let intr = Intrinsics::TUM_FREIBURG1;
+        let rays: Vec<Vector2<f64>> = (0..SURFACE_ROWS)
+            .flat_map(|r| (0..SURFACE_COLS).map(move |c| surface_pixel(c, r, 640, 480)))
+            .map(|p| Vector2::new((p.x - intr.cx) / intr.fx, (p.y - intr.cy) / intr.fy))
+            .collect();
+        // Depth of each ray from camera-to-world pose `wc`: the nearest corridor surface.
+        let render = |wc: &Isometry3<f64>| -> Vec<u16> {
+            rays.iter()
+                .map(|r| {
+                    let d = wc.rotation * Vector3::new(r.x, r.y, 1.0);
+                    let o = wc.translation.vector;
+                    let mut best = f64::INFINITY;
+                    for (axis, value) in
+                        [(1, -1.0), (1, 1.0), (2, 0.0), (2, 2.5), (0, 0.0), (0, 10.0)]
+                    {
+                        if d[axis].abs() > 1e-9 {
+                            let t = (value - o[axis]) / d[axis];
+                            if t > 0.0 {
+                                best = best.min(t);
+                            }
+                        }
+                    }
+                    // Depth along the optical axis, in millimetres.
+                    (best * 1000.0).round() as u16
+                })
+                .collect()
+        };
+        let look = |x: f64, forward: f64| -> Isometry3<f64> {
+            // Camera z along ±x, camera x to the right, camera y down.
+            let rot = nalgebra::Rotation3::from_basis_unchecked(&[
+                Vector3::new(0.0, -forward, 0.0),
+                Vector3::new(0.0, 0.0, -1.0),
+                Vector3::new(forward, 0.0, 0.0),
+            ]);
+            Isometry3::from_parts(
+                nalgebra::Translation3::new(x, 0.1, 1.3),
+                UnitQuaternion::from_rotation_matrix(&rot),
+            )
+        };
+        let truth: Vec<Isometry3<f64>> = (0..6)
+            .map(|i| look(1.0 + 0.5 * i as f64, 1.0))
+            .chain((0..6).map(|i| look(8.5 - 0.5 * i as f64, -1.0)))
+            .collect();
+        // About the middle of leg B: 8 cm sideways there, and 1° of heading.
+        let error =
+            pose([7.0, 0.08, 0.0], [0.0, 0.0, 1.0]) * pose([-7.0, 0.0, 0.0], [0.0, 0.0, 0.0]);
+        let mut map = Map::default();
+        let m = Measurement::synthetic(0, [Vector2::new(320.0, 240.0)], 0.0, 2.0, vec![[0; 32]]);
+        for (i, wc) in truth.iter().enumerate() {
+            let estimate = if i >= 6 { error * wc } else { *wc };
+            let kf = map.add_keyframe(&m, estimate.inverse());
+            map.keyframes.get_mut(&kf).unwrap().surface = render(wc);
+        }
+        // Each leg is a chain of covisible keyframes; the legs share nothing.
+        for i in 0..12u32 {
+            for j in 0..12u32 {
+                if i != j && i / 6 == j / 6 && i.abs_diff(j) <= 2 {
+                    map.keyframes
+                        .get_mut(&i)
+                        .unwrap()
+                        .covisibility
+                        .insert(j, 50);
+                }
+            }
+        }
+        let edges = seam_edges(&map, &rays, &EdgeSearch::default());
+        assert!(!edges.is_empty(), "no edge between the legs");
+        for e in &edges {
+            assert!(e.a < 6 && e.b >= 6, "edge {} <- {} within a leg", e.a, e.b);
+            let truth_ab = truth[e.a as usize].inverse() * truth[e.b as usize];
+            let d = e.a_from_b * truth_ab.inverse();
+            // In a's camera frame the corridor's length is z (a looks along +x): sideways
+            // (camera x), height (camera y) and heading are restored; the length may not be.
+            assert!(
+                d.translation.x.abs() < 0.01 && d.translation.y.abs() < 0.01,
+                "edge {} <- {} is off by {:?}",
+                e.a,
+                e.b,
+                d.translation.vector
+            );
+            assert!(d.rotation.angle().to_degrees() < 0.2, "heading off {d:?}");
+            let eig = SymmetricEigen::new(e.information);
+            let (i_min, _) = eig.eigenvalues.argmin();
+            let v = eig.eigenvectors.column(i_min).into_owned();
+            assert!(
+                eig.eigenvalues[i_min].abs() < 1e-9 * eig.eigenvalues.max() && v[5].abs() > 0.9,
+                "weakest direction {:?} ({}) is not the corridor's length",
+                v.as_slice(),
+                eig.eigenvalues[i_min]
+            );
+        }
+        // Without the error between the legs, the edges find nothing to correct.
+        let mut exact = map.clone();
+        for (i, wc) in truth.iter().enumerate() {
+            exact.keyframes.get_mut(&(i as u32)).unwrap().pose_cw = wc.inverse();
+        }
+        for e in seam_edges(&exact, &rays, &EdgeSearch::default()) {
+            assert!(e.correction_m < 0.005 && e.correction_deg < 0.1, "{e:?}");
+        }
     }
 }

@@ -601,7 +601,7 @@ impl MapMerger {
     /// Full BA over every keyframe of the map (the first one fixed for the gauge), as after a
     /// consistent closure; Final's batch refinement adds frames ([`Self::global_ba_with_frames`]).
     pub fn global_ba(&self, map: &mut Map) -> Option<optim::BaReport> {
-        self.global_ba_with_frames(map, &[]).map(|(r, _)| r)
+        self.global_ba_with_frames(map, &[], &[]).map(|(r, _)| r)
     }
 }
 
@@ -936,6 +936,7 @@ impl MapMerger {
         &self,
         map: &mut Map,
         frames: &[&FrameObservations],
+        depth_edges: &[crate::depth_registration::DepthEdge],
     ) -> Option<(optim::BaReport, FramePoses)> {
         let iterations = self.cfg.final_ba_iterations as usize;
         if iterations == 0 || map.keyframes.len() < 2 {
@@ -971,6 +972,18 @@ impl MapMerger {
             .collect();
         let mut job = prepare_ba(map, &self.geo, &free, kf, &first, &second)?;
         let n_kf_cams = job.problem.keyframes.len();
+        let cam_index: BTreeMap<KfId, usize> =
+            job.cams.iter().enumerate().map(|(i, k)| (*k, i)).collect();
+        for e in depth_edges {
+            if let (Some(&a), Some(&b)) = (cam_index.get(&e.a), cam_index.get(&e.b)) {
+                job.problem.pose_edges.push(optim::BaPoseEdge {
+                    a,
+                    b,
+                    a_from_b: e.a_from_b,
+                    info: e.information,
+                });
+            }
+        }
         let pt_index: BTreeMap<PointId, usize> =
             job.pts.iter().enumerate().map(|(i, p)| (*p, i)).collect();
         let mut used = Vec::new();

@@ -1621,8 +1621,31 @@ impl StateMachine {
         for id in ids {
             let map = self.atlas.maps.get_mut(&id).expect("listed");
             let (cameras, rest) = select_frames(map, &self.frame_obs, interval);
+            let edges = if self.cfg.mapping.final_depth_edges && !self.mono {
+                timing.time("final_depth_edges", || {
+                    crate::depth_registration::seam_edges(
+                        map,
+                        &self.surface_rays,
+                        &Default::default(),
+                    )
+                })
+            } else {
+                Vec::new()
+            };
+            for e in &edges {
+                tracing::info!(
+                    "depth edge in map {id}: keyframe {} <- {}, {} points on {} planes, rms {:.1} mm, moves them {:.1} cm and {:.2}°",
+                    e.a,
+                    e.b,
+                    e.registration.inliers,
+                    e.registration.planes,
+                    1e3 * e.registration.rms_m,
+                    1e2 * e.correction_m,
+                    e.correction_deg
+                );
+            }
             let Some((r, poses)) = timing.time("final_ba", || {
-                self.merger.global_ba_with_frames(map, &cameras)
+                self.merger.global_ba_with_frames(map, &cameras, &edges)
             }) else {
                 continue;
             };

@@ -1093,8 +1093,8 @@ mod tests {
         ];
         let mut points = Vec::new();
         let mut observations = Vec::new();
-        for c in 0..2 {
-            let pose_wc = truth[c].inverse();
+        for (c, t) in truth.iter().enumerate() {
+            let pose_wc = t.inverse();
             for _ in 0..40 {
                 let pc = Vector3::new(
                     rng.random_range(-1.0..1.0),
@@ -1178,8 +1178,8 @@ mod tests {
         assert!(err < 1e-4, "pose error {err}");
         assert!(report.final_cost < 1e-4 * report.initial_cost);
         // The points moved with their camera, back to where they are.
-        for i in 40..80 {
-            assert!((problem.points[i].position_w - points[i].position_w).norm() < 1e-3);
+        for (solved, start) in problem.points.iter().zip(&points).skip(40) {
+            assert!((solved.position_w - start.position_w).norm() < 1e-3);
         }
     }
 

@@ -17,8 +17,8 @@ pub mod reprojection;
 pub mod se3;
 
 pub use local_ba::{
-    BaCamera, BaError, BaObservation, BaParams, BaPoint, BaProblem, BaReport, Termination, solve,
-    solve_with_outlier_rejection,
+    BaCamera, BaError, BaObservation, BaParams, BaPoint, BaPoseEdge, BaProblem, BaReport,
+    Termination, solve, solve_with_outlier_rejection,
 };
 pub use pose_only::{PoseObservation, PoseParams, PoseRefinement, refine_pose};
 pub use reprojection::{CHI2_MONO, CHI2_RGBD, Intrinsics, Observation, huber, octave_information};

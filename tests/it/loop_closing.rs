@@ -312,3 +312,34 @@ fn two_false_frames_on_a_slow_sequence_keep_one_map() {
     assert_eq!(s.maps, 1);
     assert_eq!(s.pools_rolled_back, 0, "a right closure was rolled back");
 }
+
+/// `mapping.final_depth_edges`: Final's BA also holds the geometric edges that register the
+/// depth of keyframes which see the same corridor walls from its two legs (no key point is
+/// shared: one leg looks out, the other back). Measured on this sequence: ATE 3.46 → 1.83 cm.
+/// The edges go through the whole pipeline (the depth grid kept per keyframe, the search,
+/// the registration, the BA's pose edges); what is posed does not change.
+#[test]
+fn depth_edges_join_the_corridor_legs_of_the_loop() {
+    let tmp = tempfile::tempdir().unwrap();
+    let seq = tmp.path().join("loop");
+    common::synth_small("loop", &seq, None);
+    let run_with = |edges: bool| {
+        let config = tmp.path().join(format!("edges-{edges}.toml"));
+        std::fs::write(&config, format!("[mapping]\nfinal_depth_edges = {edges}\n")).unwrap();
+        run(&RunOptions {
+            sequence: seq.clone(),
+            out: tmp.path().join(format!("run-{edges}")),
+            config: Some(config),
+            eval: true,
+            ..Default::default()
+        })
+        .unwrap()
+    };
+    let (with, without) = (run_with(true), run_with(false));
+    assert_eq!(
+        (with.maps, with.frames_with_pose),
+        (without.maps, without.frames_with_pose)
+    );
+    let (a, b) = (ate(&with), ate(&without));
+    assert!(a <= 0.7 * b, "ATE {a} m with depth edges, {b} m without");
+}
