@@ -535,9 +535,10 @@ fn group_points(
 }
 
 /// Geometric edges of `map`: pairs of keyframes at least [`EdgeSearch::min_hops`] apart in the
-/// covisibility graph whose views overlap (by their current poses), registered by their depth
-/// grids (`rays` from [`crate::preprocess::Preprocessor::surface_rays`]). Best overlaps
-/// first; a pair next to an edge already found (both ends within one hop) is skipped.
+/// covisibility graph that see surfaces in common cells (by their current poses), registered
+/// by their depth grids (`rays` from [`crate::preprocess::Preprocessor::surface_rays`]). Most
+/// shared cells first; a pair next to one already tried (both ends within one hop) is
+/// skipped.
 pub fn seam_edges(map: &Map, rays: &[Vector2<f64>], search: &EdgeSearch) -> Vec<DepthEdge> {
     let points: BTreeMap<KfId, Vec<Vector3<f64>>> = map
         .keyframes
