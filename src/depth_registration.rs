@@ -305,7 +305,7 @@ fn register_within(
                 Vector6::from_iterator((b * x).iter().copied())
             }
         };
-        t = se3::exp(&delta) * t;
+        t = se3::retract(&t, &delta);
         if delta.norm() < 1e-7 {
             break;
         }
@@ -410,8 +410,9 @@ pub struct DepthEdge {
     pub b: KfId,
     /// `T_a · T_b⁻¹` as the surfaces measure it.
     pub a_from_b: Isometry3<f64>,
-    /// Over a left perturbation (ω, υ) of `a_from_b`: the registration's information, scaled
-    /// from its points to the planes they landed on (points on one plane share its error).
+    /// Over a left perturbation (ω, υ) of `a_from_b`: the registration's information along
+    /// the constrained directions, scaled to [`EdgeSearch::information_points`] residuals;
+    /// none along the others.
     pub information: Matrix6<f64>,
     pub registration: Registration,
     /// How far the edge moves the keyframes' relative pose (m, degrees).
@@ -594,18 +595,11 @@ pub fn seam_edges(map: &Map, rays: &[Vector2<f64>], search: &EdgeSearch) -> Vec<
     // Pairs registered so far: a pair next to one of them (both ends within one hop) would
     // register nearly the same groups again.
     let mut tried: Vec<(KfId, KfId)> = Vec::new();
-    let mut neighbourhood: HashMap<KfId, BTreeSet<KfId>> = HashMap::new();
-    let mut hood = |k: KfId| {
-        neighbourhood
-            .entry(k)
-            .or_insert_with(|| near(map, k, 2))
-            .clone()
-    };
     for (_, a, b) in candidates {
         if edges.len() >= search.max_edges {
             break;
         }
-        let (ha, hb) = (hood(a), hood(b));
+        let (ha, hb) = (near(map, a, 2), near(map, b, 2));
         if tried
             .iter()
             .any(|(ta, tb)| ha.contains(ta) && hb.contains(tb))

@@ -355,7 +355,9 @@ pub struct Preprocessor {
     pub weak_passes: usize,
     /// Precomputed row extents of the circular orientation patch (OpenCV's `umax`).
     umax: Vec<i32>,
-    /// Undistorted normalised image coordinates (x/z, y/z) of every depth-grid sample.
+    /// The depth-image pixel of every depth-grid sample, and its undistorted normalised
+    /// image coordinates (x/z, y/z).
+    surface_pixels: Vec<(u32, u32)>,
     surface_rays: Vec<Vector2<f64>>,
 }
 
@@ -400,12 +402,17 @@ impl Preprocessor {
             scales,
             weak_passes: 0,
             umax: patch_umax(HALF_PATCH),
+            surface_pixels: Vec::new(),
             surface_rays: Vec::new(),
         };
         let pixels: Vec<Vector2<f64>> = (0..SURFACE_ROWS)
             .flat_map(|r| {
                 (0..SURFACE_COLS).map(move |c| surface_pixel(c, r, camera.width, camera.height))
             })
+            .collect();
+        pre.surface_pixels = pixels
+            .iter()
+            .map(|p| (p.x.round() as u32, p.y.round() as u32))
             .collect();
         pre.surface_rays = pre
             .undistort(&pixels)?
@@ -546,11 +553,10 @@ impl Preprocessor {
             None => vec![0.0; keypoints.len()],
         };
         let surface = match &frame.depth {
-            Some(d) => (0..SURFACE_ROWS)
-                .flat_map(|r| (0..SURFACE_COLS).map(move |c| (c, r)))
-                .map(|(c, r)| {
-                    let p = surface_pixel(c, r, self.camera.width, self.camera.height);
-                    let (x, y) = (p.x.round() as u32, p.y.round() as u32);
+            Some(d) => self
+                .surface_pixels
+                .iter()
+                .map(|&(x, y)| {
                     let z = if x < d.width && y < d.height {
                         d.get(x, y)
                     } else {
