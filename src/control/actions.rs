@@ -1030,6 +1030,15 @@ impl StateMachine {
         let report = timing.time("global_opt", || self.global_optimization(into, Some(&acc)));
         self.flags.consistent_map = report.consistent;
         self.suspects = report.offending_pools;
+        // The map was consistent until this pool came: it is a suspect too, whichever older
+        // pool the optimiser blames, and the recovery tries it first (newest first). An older
+        // pool has already agreed with every pool accepted since; undoing it undoes those too
+        // and discards their keyframes (`revisit` with the view angle at 15° and 5 % black
+        // frames: a closure after a re-acquired keyframe had pool 3 of 14 blamed, and undoing
+        // pools 3-14 left 39 % of the frames posed; undoing pool 14 alone was consistent: 94 %).
+        if !report.consistent && !self.suspects.contains(&pool) {
+            self.suspects.push(pool);
+        }
         // The tracker continues at the newest member's pose (a loop's query keyframe as
         // optimised; a relocalized frame relative to its matched keyframe, which the
         // optimisation may have moved).
