@@ -16,12 +16,15 @@
 //! ([`crate::optim::BaPoseEdge`]) when `mapping.final_depth_edges` is on. This module
 //! measures; the state machine decides to use it.
 //!
-//! Off by default. Measured 2026-11-27 with it on (`docs/robustness-notes.md`): small
-//! `loop` unperturbed 3.46 → 1.93 cm and one 1 s drop 8.8 → 2.8 cm, the other rows of the
-//! five sequences unchanged or within 0.8 cm; but the case study's largest map 2.12 → 2.39 cm,
-//! and 6 s per session there. Registrations from a guess several degrees off settle in wrong
-//! minima; the inlier share ([`EdgeSearch::min_inlier_share`]) is what keeps them out, and
-//! with it `loop`'s longer drops get no edge at all.
+//! A registration first pairs the two sides' wide planes (walls, floor, ceiling: RANSAC
+//! planes, [`WidePlanes`]) and aligns them, which reaches a guess degrees and decimetres off;
+//! the fine registration then refines only the directions those planes constrain. Without
+//! three unambiguous pairs it falls back to coarse-to-fine local planes from the guess.
+//!
+//! Off by default (the README's "Depth edges in the Final refinement" has the measurements):
+//! it makes small `loop`'s one-drop rows three to five times more accurate, but it has been
+//! validated on the synthetic sequences only, where it also costs a few millimetres with 5 %
+//! false frames and in the case study; and a wrong edge bends the map it is in.
 
 use crate::map::{KfId, Map};
 use crate::optim::se3;
@@ -109,16 +112,7 @@ impl PlaneMap {
             if members.len() < cfg.min_points_per_plane {
                 continue;
             }
-            let n = members.len() as f64;
-            let centroid = members.iter().map(|&i| points[i]).sum::<Vector3<f64>>() / n;
-            let cov = members
-                .iter()
-                .map(|&i| {
-                    let d = points[i] - centroid;
-                    d * d.transpose()
-                })
-                .sum::<nalgebra::Matrix3<f64>>()
-                / n;
+            let (centroid, cov) = centroid_and_covariance(points, &members);
             let eig = cov.symmetric_eigen();
             let mut order = [0, 1, 2];
             order.sort_by(|&a, &b| eig.eigenvalues[a].total_cmp(&eig.eigenvalues[b]));
@@ -190,6 +184,25 @@ impl PlaneMap {
         }
         best
     }
+}
+
+/// Centroid and covariance of `points[members]` (not empty): a plane fit's normal is the
+/// covariance's smallest eigenvector.
+fn centroid_and_covariance(
+    points: &[Vector3<f64>],
+    members: &[usize],
+) -> (Vector3<f64>, nalgebra::Matrix3<f64>) {
+    let n = members.len() as f64;
+    let centroid = members.iter().map(|&i| points[i]).sum::<Vector3<f64>>() / n;
+    let cov = members
+        .iter()
+        .map(|&i| {
+            let d = points[i] - centroid;
+            d * d.transpose()
+        })
+        .sum::<nalgebra::Matrix3<f64>>()
+        / n;
+    (centroid, cov)
 }
 
 fn cell(p: &Vector3<f64>, voxel: f64) -> (i64, i64, i64) {
@@ -365,6 +378,9 @@ pub struct EdgeSearch {
     /// degrees) is not trusted: point-to-plane ICP converges only from close guesses.
     pub max_correction_m: f64,
     pub max_correction_deg: f64,
+    /// The same after the wide planes were paired, which find a correction from further off.
+    pub max_wide_correction_m: f64,
+    pub max_wide_correction_deg: f64,
     /// Surface points beyond this depth are left out (m).
     pub max_depth_m: f64,
     /// Directions whose information is below this share of the strongest one are left
@@ -378,6 +394,8 @@ pub struct EdgeSearch {
     /// these edges (m), correspondences up to a cell away; `registration` then refines. A
     /// guess degrees off moves far surfaces by more than a fine cell.
     pub coarse_voxels_m: Vec<f64>,
+    /// Before those, the groups' wide planes (walls, floor) are paired and aligned.
+    pub wide_planes: WidePlanes,
     pub registration: RegistrationConfig,
 }
 
@@ -394,10 +412,13 @@ impl Default for EdgeSearch {
             max_source_points: 6000,
             max_correction_m: 0.3,
             max_correction_deg: 5.0,
+            max_wide_correction_m: 0.6,
+            max_wide_correction_deg: 8.0,
             max_depth_m: 4.0,
             min_information_ratio: 1e-3,
             information_points: 25.0,
             coarse_voxels_m: vec![0.6, 0.3],
+            wide_planes: WidePlanes::default(),
             registration: RegistrationConfig::default(),
         }
     }
@@ -438,17 +459,9 @@ fn constrained_edge(
     (source, views): (&[Vector3<f64>], &[Vector3<f64>]),
     search: &EdgeSearch,
 ) -> Option<DepthEdge> {
-    let (s, _) = balance(&free.information)?;
-    let eig = SymmetricEigen::new(s * free.information * s);
-    let top = eig.eigenvalues.max();
-    let kept: Vec<usize> = (0..6)
-        .filter(|&i| eig.eigenvalues[i] >= search.min_information_ratio * top)
-        .collect();
-    // The constrained directions, as perturbations: registered again from the guess moving
-    // only along them (a slide along the free direction would leak into the others).
-    let basis = DMatrix::from_fn(6, kept.len(), |r, c| {
-        (s * eig.eigenvectors.column(kept[c]).into_owned())[r]
-    });
+    let basis = constrained_basis(&free.information, search.min_information_ratio)?;
+    // Registered again from the guess moving only along the constrained directions (a slide
+    // along the free direction would leak into the others).
     let r = register_within(
         target,
         source,
@@ -457,13 +470,41 @@ fn constrained_edge(
         &search.registration,
         Some(&basis),
     )?;
+    edge_from(a, b, guess, r, basis.ncols(), search)
+}
+
+/// The directions (perturbations, as columns) whose information is at least `ratio` of the
+/// strongest, rotations weighed as arcs at the points' lever arm (see [`balance`]).
+fn constrained_basis(info: &Matrix6<f64>, ratio: f64) -> Option<DMatrix<f64>> {
+    let (s, _) = balance(info)?;
+    let eig = SymmetricEigen::new(s * info * s);
+    let top = eig.eigenvalues.max();
+    let kept: Vec<usize> = (0..6)
+        .filter(|&i| eig.eigenvalues[i] >= ratio * top)
+        .collect();
+    Some(DMatrix::from_fn(6, kept.len(), |r, c| {
+        (s * eig.eigenvectors.column(kept[c]).into_owned())[r]
+    }))
+}
+
+/// The edge of the registration `r` (from `guess`) that moved along `kept` directions: its
+/// information restricted to its `kept` strongest directions and scaled to
+/// [`EdgeSearch::information_points`] residuals.
+fn edge_from(
+    a: KfId,
+    b: KfId,
+    guess: &Isometry3<f64>,
+    r: Registration,
+    kept: usize,
+    search: &EdgeSearch,
+) -> Option<DepthEdge> {
     let (s, s_inv) = balance(&r.information)?;
     let eig = SymmetricEigen::new(s * r.information * s);
     let mut order: Vec<usize> = (0..6).collect();
     order.sort_by(|&i, &j| eig.eigenvalues[j].total_cmp(&eig.eigenvalues[i]));
     let scale = search.information_points / r.inliers as f64;
     let mut balanced = Matrix6::zeros();
-    for &i in order.iter().take(kept.len()) {
+    for &i in order.iter().take(kept) {
         let v = eig.eigenvectors.column(i);
         balanced += v * v.transpose() * (eig.eigenvalues[i] * scale);
     }
@@ -475,9 +516,34 @@ fn constrained_edge(
         information: s_inv * balanced * s_inv,
         correction_m: correction.translation.vector.norm(),
         correction_deg: correction.rotation.angle().to_degrees(),
-        constrained: kept.len(),
+        constrained: kept,
         registration: r,
     })
+}
+
+/// The damped Gauss–Newton step `−(H + μ)⁻¹ g` taken in balanced coordinates (see
+/// [`balance`]) with isotropic damping μ = 10⁻³ of the largest eigenvalue, and nothing along
+/// directions with no information: a diagonal damping would not be aligned with a free
+/// direction that is not a coordinate axis (a corridor's length seen by a pitched camera),
+/// and would turn part of the gradient into a long slide along it.
+fn damped_step(h: &Matrix6<f64>, g: &Vector6<f64>) -> Option<Vector6<f64>> {
+    let (s, _) = balance(h)?;
+    let eig = SymmetricEigen::new(s * h * s);
+    let top = eig.eigenvalues.max();
+    if !(top > 0.0 && top.is_finite()) {
+        return None;
+    }
+    let gs = s * g;
+    let mut step = Vector6::zeros();
+    for i in 0..6 {
+        let l = eig.eigenvalues[i];
+        if l < 1e-4 * top {
+            continue;
+        }
+        let v = eig.eigenvectors.column(i);
+        step -= v * (v.dot(&gs) / (l + 1e-3 * top));
+    }
+    Some(s * step)
 }
 
 /// `S` and `S⁻¹` with `δ = S·δ'`, where `δ'` measures rotations as arcs at the length that
@@ -492,6 +558,209 @@ fn balance(info: &Matrix6<f64>) -> Option<(Matrix6<f64>, Matrix6<f64>)> {
     let l = (rot / trans).sqrt();
     let d = |x: f64| Matrix6::from_diagonal(&Vector6::new(x, x, x, 1.0, 1.0, 1.0));
     Some((d(1.0 / l), d(l)))
+}
+
+/// How the wide planes of two groups are found and aligned (see [`align_wide_planes`]).
+#[derive(Clone, Debug)]
+pub struct WidePlanes {
+    /// Planes per group at most, largest first.
+    pub max_planes: usize,
+    /// A plane holds at least this share of the group's points.
+    pub min_share: f64,
+    /// Distance (m) within which a point is on a plane.
+    pub tolerance_m: f64,
+    /// RANSAC hypotheses per plane.
+    pub hypotheses: usize,
+    /// The group is subsampled to about this many points.
+    pub max_points: usize,
+    /// A source plane pairs with a target plane within this angle (degrees) and offset (m)
+    /// under the current estimate.
+    pub max_angle_deg: f64,
+    pub max_offset_m: f64,
+}
+
+impl Default for WidePlanes {
+    fn default() -> Self {
+        Self {
+            max_planes: 6,
+            min_share: 0.08,
+            tolerance_m: 0.04,
+            hypotheses: 200,
+            max_points: 4000,
+            max_angle_deg: 12.0,
+            max_offset_m: 0.6,
+        }
+    }
+}
+
+/// A wide plane of a group's points (a wall, the floor): `normal · x + offset = 0`, the
+/// normal toward the cameras that saw it; `members` are a sample of its points.
+#[derive(Clone, Debug)]
+struct WidePlane {
+    normal: Vector3<f64>,
+    offset: f64,
+    members: Vec<Vector3<f64>>,
+}
+
+/// The largest planes of `points` (seen along `views`), by RANSAC, deterministic: each
+/// plane's inliers are refitted by least squares and removed before the next is sought.
+fn wide_planes(
+    points: &[Vector3<f64>],
+    views: &[Vector3<f64>],
+    cfg: &WidePlanes,
+) -> Vec<WidePlane> {
+    use rand::{Rng, SeedableRng};
+    let stride = points.len().div_ceil(cfg.max_points).max(1);
+    let mut left: Vec<usize> = (0..points.len()).step_by(stride).collect();
+    let total = left.len();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(total as u64);
+    let mut out = Vec::new();
+    while out.len() < cfg.max_planes && left.len() >= 3 {
+        let mut best: Option<(Vector3<f64>, f64, usize)> = None;
+        for _ in 0..cfg.hypotheses {
+            let pick =
+                |rng: &mut rand_chacha::ChaCha8Rng| points[left[rng.random_range(0..left.len())]];
+            let (a, b, c) = (pick(&mut rng), pick(&mut rng), pick(&mut rng));
+            let n = (b - a).cross(&(c - a));
+            if n.norm() < 1e-6 {
+                continue;
+            }
+            let n = n.normalize();
+            let d = -n.dot(&a);
+            let count = left
+                .iter()
+                .filter(|&&i| (n.dot(&points[i]) + d).abs() <= cfg.tolerance_m)
+                .count();
+            if best.is_none_or(|(_, _, c)| count > c) {
+                best = Some((n, d, count));
+            }
+        }
+        let Some((n, d, count)) = best else { break };
+        if (count as f64) < cfg.min_share * total as f64 {
+            break;
+        }
+        let (inliers, rest): (Vec<usize>, Vec<usize>) = left
+            .iter()
+            .partition(|&&i| (n.dot(&points[i]) + d).abs() <= cfg.tolerance_m);
+        left = rest;
+        // Least squares on the inliers: the smallest covariance direction.
+        let m = inliers.len() as f64;
+        let (centroid, cov) = centroid_and_covariance(points, &inliers);
+        let eig = cov.symmetric_eigen();
+        let k = eig.eigenvalues.imin();
+        let mut normal = eig.eigenvectors.column(k).into_owned().normalize();
+        let toward: f64 = inliers.iter().map(|&i| views[i].dot(&normal)).sum();
+        if toward < 0.0 {
+            normal = -normal;
+        }
+        // Seen edge-on or from both sides: no side to pair by.
+        if toward.abs() < 0.1 * m {
+            continue;
+        }
+        let members = inliers
+            .iter()
+            .step_by(inliers.len().div_ceil(300).max(1))
+            .map(|&i| points[i])
+            .collect();
+        out.push(WidePlane {
+            normal,
+            offset: -normal.dot(&centroid),
+            members,
+        });
+    }
+    out
+}
+
+/// Target ← source from `guess`, by pairing the two groups' wide planes (same side, normals
+/// within [`WidePlanes::max_angle_deg`], offsets within [`WidePlanes::max_offset_m`], and no
+/// other target plane within those) and moving the source's plane points onto their paired
+/// target planes. A wall pairs with a wall from a guess degrees and decimetres off, where
+/// point-to-plane ICP on local planes settles on the nearest surface. None with fewer than
+/// three pairs or without two non-parallel ones (one wrong pairing would have nothing to
+/// disagree with), or when a pair does not fit afterwards. Returns the alignment and its
+/// Hessian, whose null directions (a corridor's length) kept the guess.
+fn align_wide_planes(
+    (tp, tv): (&[Vector3<f64>], &[Vector3<f64>]),
+    (sp, sv): (&[Vector3<f64>], &[Vector3<f64>]),
+    guess: &Isometry3<f64>,
+    cfg: &WidePlanes,
+) -> Option<(Isometry3<f64>, Matrix6<f64>)> {
+    let target = wide_planes(tp, tv, cfg);
+    let source = wide_planes(sp, sv, cfg);
+    let min_cos = cfg.max_angle_deg.to_radians().cos();
+    let mut est = *guess;
+    let mut info = Matrix6::zeros();
+    let mut pairs: Vec<(usize, usize)> = Vec::new();
+    for _ in 0..3 {
+        // Each source plane pairs with the one target plane within reach, if only one is.
+        let mut taken = vec![false; target.len()];
+        pairs.clear();
+        for (si, s) in source.iter().enumerate() {
+            let n = est.rotation * s.normal;
+            let d = s.offset - n.dot(&est.translation.vector);
+            let candidates: Vec<usize> = target
+                .iter()
+                .enumerate()
+                .filter(|(_, t)| {
+                    t.normal.dot(&n) >= min_cos && (t.offset - d).abs() <= cfg.max_offset_m
+                })
+                .map(|(ti, _)| ti)
+                .collect();
+            // Two parallel target planes within reach (a wall and a recess in it): which one
+            // this is cannot be told from the planes alone.
+            if let [ti] = candidates[..]
+                && !taken[ti]
+            {
+                taken[ti] = true;
+                pairs.push((si, ti));
+            }
+        }
+        let spread = pairs.iter().any(|&(_, a)| {
+            pairs.iter().any(|&(_, b)| {
+                target[a].normal.dot(&target[b].normal).abs() < 30f64.to_radians().cos()
+            })
+        });
+        // Three pairs at least (a corridor's two walls and its floor): with two, one wrong
+        // pairing has nothing to disagree with.
+        if !spread || pairs.len() < 3 {
+            return None;
+        }
+        for _ in 0..10 {
+            let mut h = Matrix6::<f64>::zeros();
+            let mut g = Vector6::<f64>::zeros();
+            for &(si, ti) in &pairs {
+                let t = &target[ti];
+                // Every pair weighs the same, whatever its number of points.
+                let w = 1.0 / source[si].members.len() as f64;
+                for x in &source[si].members {
+                    let q = est * Point3::from(*x);
+                    let r = t.normal.dot(&q.coords) + t.offset;
+                    let qn = q.coords.cross(&t.normal);
+                    let j = Vector6::new(qn.x, qn.y, qn.z, t.normal.x, t.normal.y, t.normal.z);
+                    h += w * j * j.transpose();
+                    g += w * r * j;
+                }
+            }
+            let delta = damped_step(&h, &g)?;
+            est = se3::retract(&est, &delta);
+            info = h;
+            if delta.norm() < 1e-8 {
+                break;
+            }
+        }
+    }
+    // Every pair must fit after the alignment: a wall paired with a parallel one that is not
+    // the same leaves its points off the plane by the difference.
+    let fits = pairs.iter().all(|&(si, ti)| {
+        let (s, t) = (&source[si], &target[ti]);
+        let sq: f64 = s
+            .members
+            .iter()
+            .map(|x| (t.normal.dot(&(est * Point3::from(*x)).coords) + t.offset).powi(2))
+            .sum();
+        (sq / s.members.len() as f64).sqrt() <= 2.0 * cfg.tolerance_m
+    });
+    fits.then_some((est, info))
 }
 
 /// Keyframes within `hops - 1` covisibility hops of `kf` (itself included).
@@ -617,38 +886,57 @@ pub fn seam_edges(map: &Map, rays: &[Vector2<f64>], search: &EdgeSearch) -> Vec<
         let source: Vec<Vector3<f64>> = sp.into_iter().step_by(stride).collect();
         let views: Vec<Vector3<f64>> = sv.into_iter().step_by(stride).collect();
         let guess = map.keyframes[&a].pose_cw * map.keyframes[&b].pose_cw.inverse();
-        let mut from = Some(guess);
-        for &voxel_m in &search.coarse_voxels_m {
-            let cfg = RegistrationConfig {
-                voxel_m,
-                max_residual_m: voxel_m,
-                huber_m: voxel_m / 5.0,
-                ..search.registration.clone()
-            };
-            let planes = PlaneMap::seen_from(&tp, &tv, &cfg);
-            from = from.and_then(|f| {
-                register_within(&planes, &source, Some(&views), &f, &cfg, None)
-                    .map(|r| r.target_from_source)
-            });
-        }
-        let Some(r) = from.and_then(|f| {
-            register_within(
-                &target,
-                &source,
-                Some(&views),
-                &f,
-                &search.registration,
-                None,
-            )
-        }) else {
-            continue;
+        // Wide planes paired first: the fine registration then refines only the directions
+        // they constrain, from where they put the source (a guess degrees off is out of its
+        // reach, and a slide along a corridor's length would settle on the nearest door).
+        let wide = align_wide_planes((&tp, &tv), (&source, &views), &guess, &search.wide_planes);
+        let edge = match &wide {
+            Some((start, info)) => {
+                constrained_basis(info, search.min_information_ratio).and_then(|basis| {
+                    let r = register_within(
+                        &target,
+                        &source,
+                        Some(&views),
+                        start,
+                        &search.registration,
+                        Some(&basis),
+                    )?;
+                    edge_from(a, b, &guess, r, basis.ncols(), search)
+                })
+            }
+            None => {
+                let mut from = Some(guess);
+                for &voxel_m in &search.coarse_voxels_m {
+                    let cfg = RegistrationConfig {
+                        voxel_m,
+                        max_residual_m: voxel_m,
+                        huber_m: voxel_m / 5.0,
+                        ..search.registration.clone()
+                    };
+                    let planes = PlaneMap::seen_from(&tp, &tv, &cfg);
+                    from = from.and_then(|f| {
+                        register_within(&planes, &source, Some(&views), &f, &cfg, None)
+                            .map(|r| r.target_from_source)
+                    });
+                }
+                from.and_then(|f| {
+                    register_within(
+                        &target,
+                        &source,
+                        Some(&views),
+                        &f,
+                        &search.registration,
+                        None,
+                    )
+                })
+                .and_then(|r| constrained_edge(a, b, &guess, r, &target, (&source, &views), search))
+            }
         };
-        let Some(edge) = constrained_edge(a, b, &guess, r, &target, (&source, &views), search)
-        else {
+        let Some(edge) = edge else {
             continue;
         };
         tracing::debug!(
-            "depth registration kf {a} (t {:.3}) <- kf {b} (t {:.3}): {} inliers on {} planes, rms {:.1} mm, moved {:.1} cm {:.2}° in {} constrained directions",
+            "depth registration kf {a} (t {:.3}) <- kf {b} (t {:.3}): {} inliers on {} planes, rms {:.1} mm, moved {:.1} cm {:.2}° in {} constrained directions ({})",
             map.keyframes[&a].t,
             map.keyframes[&b].t,
             edge.registration.inliers,
@@ -656,10 +944,20 @@ pub fn seam_edges(map: &Map, rays: &[Vector2<f64>], search: &EdgeSearch) -> Vec<
             1e3 * edge.registration.rms_m,
             1e2 * edge.correction_m,
             edge.correction_deg,
-            edge.constrained
+            edge.constrained,
+            if wide.is_some() {
+                "wide planes paired"
+            } else {
+                "local planes only"
+            }
         );
-        if edge.correction_m > search.max_correction_m
-            || edge.correction_deg > search.max_correction_deg
+        let (max_m, max_deg) = if wide.is_some() {
+            (search.max_wide_correction_m, search.max_wide_correction_deg)
+        } else {
+            (search.max_correction_m, search.max_correction_deg)
+        };
+        if edge.correction_m > max_m
+            || edge.correction_deg > max_deg
             || (edge.registration.inliers as f64) < search.min_inlier_share * source.len() as f64
         {
             continue;
@@ -794,6 +1092,112 @@ mod tests {
         assert!(
             v[3].abs() > 0.9,
             "weakest direction {v:?} is not the corridor's length"
+        );
+    }
+
+    /// A corridor (x from −1 to 12 m, walls at y = ±1, floor 1.3 m below the cameras, ceiling
+    /// 1.2 m above) seen from its start looking down it (the target, camera at the origin)
+    /// and from 8 m along looking back (the source), whose guess is 40 cm off sideways, 5° off
+    /// in heading and 1 m off along the corridor. The wide planes recover the sideways offset,
+    /// the height and the heading; the length, which they do not constrain, keeps the guess.
+    #[test]
+    fn wide_planes_join_a_corridor_from_degrees_off() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let corridor = [
+            (1, -1.0, (-1.0, 12.0), (-1.3, 1.2)),
+            (1, 1.0, (-1.0, 12.0), (-1.3, 1.2)),
+            (2, -1.3, (-1.0, 12.0), (-1.0, 1.0)),
+            (2, 1.2, (-1.0, 12.0), (-1.0, 1.0)),
+        ];
+        let target = sample(&mut rng, &corridor, 2000, 0.01);
+        let target_views: Vec<Vector3<f64>> = target.iter().map(|p| -p.normalize()).collect();
+        let truth = pose([8.0, 0.3, 0.0], [0.0, 0.0, 180.0]);
+        let source: Vec<Vector3<f64>> = sample(&mut rng, &corridor, 2000, 0.01)
+            .into_iter()
+            .map(|p| (truth.inverse() * Point3::from(p)).coords)
+            .collect();
+        let source_views: Vec<Vector3<f64>> = source.iter().map(|p| -p.normalize()).collect();
+        let guess = pose([1.0, -0.4, 0.0], [0.0, 0.0, 5.0]) * truth;
+        let (est, info) = align_wide_planes(
+            (&target, &target_views),
+            (&source, &source_views),
+            &guess,
+            &WidePlanes::default(),
+        )
+        .expect("the walls, floor and ceiling pair");
+        // Where the source camera is, and where it looks, in the target's frame.
+        let (at, truth_at) = (est.translation.vector, truth.translation.vector);
+        assert!(
+            (at.y - truth_at.y).abs() < 0.01,
+            "sideways {} against {}",
+            at.y,
+            truth_at.y
+        );
+        assert!(
+            (at.z - truth_at.z).abs() < 0.01,
+            "height {} against {}",
+            at.z,
+            truth_at.z
+        );
+        let heading = (est.rotation.inverse() * truth.rotation)
+            .angle()
+            .to_degrees();
+        assert!(heading < 0.2, "{heading}° off");
+        assert!(
+            (at.x - guess.translation.x).abs() < 0.1,
+            "the length moved from {} to {}: nothing constrains it",
+            guess.translation.x,
+            at.x
+        );
+        let basis = constrained_basis(&info, 1e-3).expect("information");
+        assert_eq!(basis.ncols(), 5, "all but the corridor's length");
+    }
+
+    /// Two walls of a corridor only (no floor, no ceiling): parallel planes, two pairs; the
+    /// rotation about their common direction is unconstrained, so there is no alignment.
+    #[test]
+    fn parallel_walls_alone_give_no_wide_alignment() {
+        let mut rng = ChaCha8Rng::seed_from_u64(6);
+        let walls = [
+            (1, -1.0, (-1.0, 12.0), (-1.3, 1.2)),
+            (1, 1.0, (-1.0, 12.0), (-1.3, 1.2)),
+        ];
+        let target = sample(&mut rng, &walls, 2000, 0.01);
+        let views: Vec<Vector3<f64>> = target.iter().map(|p| -p.normalize()).collect();
+        let guess = pose([0.0, 0.1, 0.0], [0.0, 0.0, 2.0]);
+        assert!(
+            align_wide_planes(
+                (&target, &views),
+                (&target, &views),
+                &guess,
+                &WidePlanes::default()
+            )
+            .is_none()
+        );
+    }
+
+    /// The damped step leaves alone a direction with no information even when it is not a
+    /// coordinate axis (a corridor's length seen by a pitched camera), where a diagonal
+    /// damping would turn part of the gradient into a slide along it.
+    #[test]
+    fn the_damped_step_does_not_move_along_a_free_direction() {
+        let free = Vector6::new(0.0, 0.0, 0.0, 0.0, -0.14, 0.99).normalize();
+        // Information in every direction but `free`, with rotations and translations coupled.
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        let mut h = Matrix6::zeros();
+        for _ in 0..50 {
+            let mut j = Vector6::from_fn(|_, _| rng.random_range(-1.0..1.0));
+            j -= free * free.dot(&j);
+            h += j * j.transpose();
+        }
+        let mut g = Vector6::from_fn(|_, _| rng.random_range(-1.0..1.0));
+        g -= free * free.dot(&g);
+        let step = damped_step(&h, &g).expect("a step");
+        assert!(step.norm() > 1e-3);
+        assert!(
+            free.dot(&step).abs() < 1e-9 * step.norm(),
+            "moved {} along the free direction",
+            free.dot(&step)
         );
     }
 
