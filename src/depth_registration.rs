@@ -205,6 +205,13 @@ fn centroid_and_covariance(
     (centroid, cov)
 }
 
+/// Jacobian of the signed distance of `q` to a plane of normal `n` under a left
+/// perturbation δ = (ω, υ): exp(δ)·q ≈ q + ω × q + υ, and n·(ω × q) = ω·(q × n).
+fn plane_jacobian(q: &Vector3<f64>, n: &Vector3<f64>) -> Vector6<f64> {
+    let qn = q.cross(n);
+    Vector6::new(qn.x, qn.y, qn.z, n.x, n.y, n.z)
+}
+
 fn cell(p: &Vector3<f64>, voxel: f64) -> (i64, i64, i64) {
     (
         (p.x / voxel).floor() as i64,
@@ -282,16 +289,7 @@ fn register_within(
                 continue;
             }
             used.insert(key);
-            // Left perturbation: exp(δ)·q ≈ q + ω × q + υ, and n·(ω × q) = ω·(q × n).
-            let qn = q.cross(&plane.normal);
-            let j = Vector6::new(
-                qn.x,
-                qn.y,
-                qn.z,
-                plane.normal.x,
-                plane.normal.y,
-                plane.normal.z,
-            );
+            let j = plane_jacobian(&q, &plane.normal);
             let w = if r.abs() <= cfg.huber_m {
                 1.0
             } else {
@@ -602,6 +600,23 @@ struct WidePlane {
     members: Vec<Vector3<f64>>,
 }
 
+impl WidePlane {
+    /// Signed distance of `q` to the plane.
+    fn distance(&self, q: &Vector3<f64>) -> f64 {
+        self.normal.dot(q) + self.offset
+    }
+
+    /// Root mean square distance of `other`'s points, placed by `pose`, to this plane.
+    fn rms_of(&self, other: &WidePlane, pose: &Isometry3<f64>) -> f64 {
+        let sq: f64 = other
+            .members
+            .iter()
+            .map(|x| self.distance(&(pose * Point3::from(*x)).coords).powi(2))
+            .sum();
+        (sq / other.members.len() as f64).sqrt()
+    }
+}
+
 /// The largest planes of `points` (seen along `views`), by RANSAC, deterministic: each
 /// plane's inliers are refitted by least squares and removed before the next is sought.
 fn wide_planes(
@@ -733,12 +748,10 @@ fn align_wide_planes(
                 // Every pair weighs the same, whatever its number of points.
                 let w = 1.0 / source[si].members.len() as f64;
                 for x in &source[si].members {
-                    let q = est * Point3::from(*x);
-                    let r = t.normal.dot(&q.coords) + t.offset;
-                    let qn = q.coords.cross(&t.normal);
-                    let j = Vector6::new(qn.x, qn.y, qn.z, t.normal.x, t.normal.y, t.normal.z);
+                    let q = (est * Point3::from(*x)).coords;
+                    let j = plane_jacobian(&q, &t.normal);
                     h += w * j * j.transpose();
-                    g += w * r * j;
+                    g += w * t.distance(&q) * j;
                 }
             }
             let delta = damped_step(&h, &g)?;
@@ -751,16 +764,66 @@ fn align_wide_planes(
     }
     // Every pair must fit after the alignment: a wall paired with a parallel one that is not
     // the same leaves its points off the plane by the difference.
-    let fits = pairs.iter().all(|&(si, ti)| {
-        let (s, t) = (&source[si], &target[ti]);
-        let sq: f64 = s
-            .members
-            .iter()
-            .map(|x| (t.normal.dot(&(est * Point3::from(*x)).coords) + t.offset).powi(2))
-            .sum();
-        (sq / s.members.len() as f64).sqrt() <= 2.0 * cfg.tolerance_m
-    });
+    let fits = pairs
+        .iter()
+        .all(|&(si, ti)| target[ti].rms_of(&source[si], &est) <= 2.0 * cfg.tolerance_m);
     fits.then_some((est, info))
+}
+
+/// The edge of a pair the wide planes aligned (`start`, with their Hessian `info`): the fine
+/// registration moves only along the directions they constrain, from where they put the
+/// source (a guess degrees off is out of its reach, and a slide along a corridor's length
+/// would settle on the nearest door).
+fn refine_wide(
+    (a, b): (KfId, KfId),
+    guess: &Isometry3<f64>,
+    (start, info): (&Isometry3<f64>, &Matrix6<f64>),
+    target: &PlaneMap,
+    (source, views): (&[Vector3<f64>], &[Vector3<f64>]),
+    search: &EdgeSearch,
+) -> Option<DepthEdge> {
+    let basis = constrained_basis(info, search.min_information_ratio)?;
+    let r = register_within(
+        target,
+        source,
+        Some(views),
+        start,
+        &search.registration,
+        Some(&basis),
+    )?;
+    edge_from(a, b, guess, r, basis.ncols(), search)
+}
+
+/// The edge of a pair without wide planes to pair: local planes only, coarse to fine from
+/// the guess ([`EdgeSearch::coarse_voxels_m`]), then along the directions the result
+/// constrains ([`constrained_edge`]).
+fn register_local(
+    (a, b): (KfId, KfId),
+    guess: &Isometry3<f64>,
+    (tp, tv, target): (&[Vector3<f64>], &[Vector3<f64>], &PlaneMap),
+    (source, views): (&[Vector3<f64>], &[Vector3<f64>]),
+    search: &EdgeSearch,
+) -> Option<DepthEdge> {
+    let mut from = *guess;
+    for &voxel_m in &search.coarse_voxels_m {
+        let cfg = RegistrationConfig {
+            voxel_m,
+            max_residual_m: voxel_m,
+            huber_m: voxel_m / 5.0,
+            ..search.registration.clone()
+        };
+        let planes = PlaneMap::seen_from(tp, tv, &cfg);
+        from = register_within(&planes, source, Some(views), &from, &cfg, None)?.target_from_source;
+    }
+    let r = register_within(
+        target,
+        source,
+        Some(views),
+        &from,
+        &search.registration,
+        None,
+    )?;
+    constrained_edge(a, b, guess, r, target, (source, views), search)
 }
 
 /// Keyframes within `hops - 1` covisibility hops of `kf` (itself included).
@@ -886,51 +949,12 @@ pub fn seam_edges(map: &Map, rays: &[Vector2<f64>], search: &EdgeSearch) -> Vec<
         let source: Vec<Vector3<f64>> = sp.into_iter().step_by(stride).collect();
         let views: Vec<Vector3<f64>> = sv.into_iter().step_by(stride).collect();
         let guess = map.keyframes[&a].pose_cw * map.keyframes[&b].pose_cw.inverse();
-        // Wide planes paired first: the fine registration then refines only the directions
-        // they constrain, from where they put the source (a guess degrees off is out of its
-        // reach, and a slide along a corridor's length would settle on the nearest door).
+        // Wide planes paired first; local planes only when there are none to pair.
         let wide = align_wide_planes((&tp, &tv), (&source, &views), &guess, &search.wide_planes);
+        let src = (&source[..], &views[..]);
         let edge = match &wide {
-            Some((start, info)) => {
-                constrained_basis(info, search.min_information_ratio).and_then(|basis| {
-                    let r = register_within(
-                        &target,
-                        &source,
-                        Some(&views),
-                        start,
-                        &search.registration,
-                        Some(&basis),
-                    )?;
-                    edge_from(a, b, &guess, r, basis.ncols(), search)
-                })
-            }
-            None => {
-                let mut from = Some(guess);
-                for &voxel_m in &search.coarse_voxels_m {
-                    let cfg = RegistrationConfig {
-                        voxel_m,
-                        max_residual_m: voxel_m,
-                        huber_m: voxel_m / 5.0,
-                        ..search.registration.clone()
-                    };
-                    let planes = PlaneMap::seen_from(&tp, &tv, &cfg);
-                    from = from.and_then(|f| {
-                        register_within(&planes, &source, Some(&views), &f, &cfg, None)
-                            .map(|r| r.target_from_source)
-                    });
-                }
-                from.and_then(|f| {
-                    register_within(
-                        &target,
-                        &source,
-                        Some(&views),
-                        &f,
-                        &search.registration,
-                        None,
-                    )
-                })
-                .and_then(|r| constrained_edge(a, b, &guess, r, &target, (&source, &views), search))
-            }
+            Some((start, info)) => refine_wide((a, b), &guess, (start, info), &target, src, search),
+            None => register_local((a, b), &guess, (&tp, &tv, &target), src, search),
         };
         let Some(edge) = edge else {
             continue;
