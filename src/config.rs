@@ -172,10 +172,12 @@ pub struct MappingConfig {
     pub final_ba_frame_interval_s: f64,
     /// Final's BA also holds geometric edges between keyframes that view the same surfaces
     /// without sharing a key point (the two sides of a merge's seam), from registering their
-    /// depth (`crate::depth_registration::seam_edges`). No effect without depth. Off by
-    /// default: validated on the synthetic sequences only, and a wrong edge bends the map
-    /// (see the module's doc).
+    /// depth (`crate::depth_registration::seam_edges`): pairs whose wide planes (walls, floor,
+    /// ceiling) pair up. No effect without depth.
     pub final_depth_edges: bool,
+    /// ... and also pairs without three wide planes, registered on local planes alone. Off:
+    /// on real depth of a desk scene it made wrong edges (see the module's doc).
+    pub final_depth_edges_local_planes: bool,
 }
 
 impl Default for MappingConfig {
@@ -189,7 +191,8 @@ impl Default for MappingConfig {
             local_ba_window: 10,
             final_ba_iterations: 10,
             final_ba_frame_interval_s: 0.2,
-            final_depth_edges: false,
+            final_depth_edges: true,
+            final_depth_edges_local_planes: false,
         }
     }
 }

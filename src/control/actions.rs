@@ -1635,7 +1635,10 @@ impl StateMachine {
                     crate::depth_registration::seam_edges(
                         map,
                         &self.surface_rays,
-                        &Default::default(),
+                        &crate::depth_registration::EdgeSearch {
+                            local_planes: self.cfg.mapping.final_depth_edges_local_planes,
+                            ..Default::default()
+                        },
                     )
                 })
             } else {
