@@ -3,9 +3,9 @@
 //! Appearance (ORB) cannot relate two views of the same surfaces taken from opposite
 //! directions — a corridor walked out and back, whose legs a frame drop left unjoined (see
 //! `docs/robustness-notes.md`, `loop` one drop) — but their depth can: the walls and the floor
-//! are the same planes. This module registers a source point set onto a target's local planes
-//! and reports, with the relative pose, the registration's information matrix (the
-//! Gauss–Newton Hessian over the residual variance). A pose-graph edge built from it constrains
+//! are the same planes. This module registers a source point set onto a target's planes and
+//! reports, with the relative pose, the registration's information matrix (the Gauss–Newton
+//! Hessian over the residual variance). A pose-graph edge built from it constrains
 //! only what the surfaces pin down: along a corridor without doors the length direction keeps
 //! (almost) no information, and its smallest eigenvalue says so.
 //!
@@ -794,7 +794,7 @@ struct WideAlignment {
 /// The edge of a pair whose wide planes aligned: the alignment itself, measured on every
 /// source point that lies (within [`WidePlanes::tolerance_m`], seen from the same side) on a
 /// paired target plane. Not refined on local planes: against ground truth on `loop`'s
-/// one-drop rows the local planes turned the alignment's 0.1–0.2° into 0.3–0.9° (furniture,
+/// one-drop rows the local planes turned the alignment's 0.07–0.21° into 0.3–0.9° (furniture,
 /// door frames and the groups' own small misplacements pull at it; the walls average them).
 fn wide_edge(
     (a, b): (KfId, KfId),
