@@ -1057,9 +1057,13 @@ mod tests {
     use rand_chacha::ChaCha8Rng;
 
     /// Points sampled on axis-aligned rectangles: (fixed axis, value, ranges of the other two).
+    /// An axis-aligned face: its normal axis, its coordinate on it, and its extents along the
+    /// other two axes.
+    type Face = (usize, f64, (f64, f64), (f64, f64));
+
     fn sample(
         rng: &mut ChaCha8Rng,
-        faces: &[(usize, f64, (f64, f64), (f64, f64))],
+        faces: &[Face],
         per_face: usize,
         noise: f64,
     ) -> Vec<Vector3<f64>> {

@@ -435,7 +435,8 @@ pub fn robustness(o: &Options) -> Result<(Vec<Row>, String)> {
     if o.sequences.is_empty() {
         return Err(Error::invalid("bench robustness: no --sequence given"));
     }
-    if !(o.drop_shift.abs() < MAX_DROP_SHIFT_S) {
+    // NaN is refused too.
+    if o.drop_shift.is_nan() || o.drop_shift.abs() >= MAX_DROP_SHIFT_S {
         return Err(Error::invalid(format!(
             "bench robustness: --drop-shift {} s: must be under {} s either way (the grid keeps {} s tracked around each drop)",
             o.drop_shift,
