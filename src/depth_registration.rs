@@ -239,6 +239,20 @@ pub struct Registration {
 }
 
 impl Registration {
+    /// The registration at `t` from its `n` correspondences (on `planes` planes): their
+    /// Gauss–Newton Hessian `h` and sum of squared residuals `sq`. The residuals' own spread
+    /// (floored at a millimetre) sets the scale of the information.
+    fn from_sums(t: Isometry3<f64>, h: &Matrix6<f64>, n: usize, sq: f64, planes: usize) -> Self {
+        let mean_sq = sq / n as f64;
+        Self {
+            target_from_source: t,
+            inliers: n,
+            planes,
+            rms_m: mean_sq.sqrt(),
+            information: h / mean_sq.max(1e-6),
+        }
+    }
+
     /// Eigenvalues and unit eigenvectors of the information, smallest first: the first pair
     /// is the direction the surfaces constrain least.
     pub fn constraint_directions(&self) -> Vec<(f64, Vector6<f64>)> {
@@ -324,15 +338,7 @@ fn register_within(
         }
     }
     let (h, n, sq, planes) = last?;
-    let mean_sq = sq / n as f64;
-    // The residuals' own spread (floored at a millimetre) sets the scale of the information.
-    Some(Registration {
-        target_from_source: t,
-        inliers: n,
-        planes,
-        rms_m: mean_sq.sqrt(),
-        information: h / mean_sq.max(1e-6),
-    })
+    Some(Registration::from_sums(t, &h, n, sq, planes))
 }
 
 /// The points (camera frame, metres) of a keyframe's depth grid `surface` (millimetres, see
@@ -829,14 +835,7 @@ fn wide_edge(
     if n < search.registration.min_inliers {
         return None;
     }
-    let mean_sq = sq / n as f64;
-    let r = Registration {
-        target_from_source: wide.pose,
-        inliers: n,
-        planes: used.len(),
-        rms_m: mean_sq.sqrt(),
-        information: h / mean_sq.max(1e-6),
-    };
+    let r = Registration::from_sums(wide.pose, &h, n, sq, used.len());
     edge_from(a, b, guess, r, basis.ncols(), search)
 }
 
@@ -1056,11 +1055,45 @@ mod tests {
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
-    /// Points sampled on axis-aligned rectangles: (fixed axis, value, ranges of the other two).
     /// An axis-aligned face: its normal axis, its coordinate on it, and its extents along the
     /// other two axes.
     type Face = (usize, f64, (f64, f64), (f64, f64));
 
+    /// A corridor along x (−1 to 12 m): walls at y = ±1, floor 1.3 m below the cameras,
+    /// ceiling 1.2 m above.
+    const CORRIDOR: [Face; 4] = [
+        (1, -1.0, (-1.0, 12.0), (-1.3, 1.2)),
+        (1, 1.0, (-1.0, 12.0), (-1.3, 1.2)),
+        (2, -1.3, (-1.0, 12.0), (-1.0, 1.0)),
+        (2, 1.2, (-1.0, 12.0), (-1.0, 1.0)),
+    ];
+
+    /// Unit directions from `points` to a camera at the origin.
+    fn views_from_origin(points: &[Vector3<f64>]) -> Vec<Vector3<f64>> {
+        points.iter().map(|p| -p.normalize()).collect()
+    }
+
+    /// `faces` sampled twice ([`sample`]): seen by a target camera at the origin, then by a
+    /// source camera at `truth` (target ← source), in its own frame; each point set with its
+    /// views ([`views_from_origin`]).
+    fn two_views(
+        rng: &mut ChaCha8Rng,
+        faces: &[Face],
+        (per_face, noise): (usize, f64),
+        truth: &Isometry3<f64>,
+    ) -> [(Vec<Vector3<f64>>, Vec<Vector3<f64>>); 2] {
+        let target = sample(rng, faces, per_face, noise);
+        let source: Vec<Vector3<f64>> = sample(rng, faces, per_face, noise)
+            .into_iter()
+            .map(|p| (truth.inverse() * Point3::from(p)).coords)
+            .collect();
+        [target, source].map(|ps| {
+            let views = views_from_origin(&ps);
+            (ps, views)
+        })
+    }
+
+    /// Points sampled on axis-aligned rectangles (`per_face` each, `noise` off the plane).
     fn sample(
         rng: &mut ChaCha8Rng,
         faces: &[Face],
@@ -1181,28 +1214,16 @@ mod tests {
         );
     }
 
-    /// A corridor (x from −1 to 12 m, walls at y = ±1, floor 1.3 m below the cameras, ceiling
-    /// 1.2 m above) seen from its start looking down it (the target, camera at the origin)
+    /// [`CORRIDOR`] seen from its start looking down it (the target, camera at the origin)
     /// and from 8 m along looking back (the source), whose guess is 40 cm off sideways, 5° off
     /// in heading and 1 m off along the corridor. The wide planes recover the sideways offset,
     /// the height and the heading; the length, which they do not constrain, keeps the guess.
     #[test]
     fn wide_planes_join_a_corridor_from_degrees_off() {
         let mut rng = ChaCha8Rng::seed_from_u64(5);
-        let corridor = [
-            (1, -1.0, (-1.0, 12.0), (-1.3, 1.2)),
-            (1, 1.0, (-1.0, 12.0), (-1.3, 1.2)),
-            (2, -1.3, (-1.0, 12.0), (-1.0, 1.0)),
-            (2, 1.2, (-1.0, 12.0), (-1.0, 1.0)),
-        ];
-        let target = sample(&mut rng, &corridor, 2000, 0.01);
-        let target_views: Vec<Vector3<f64>> = target.iter().map(|p| -p.normalize()).collect();
         let truth = pose([8.0, 0.3, 0.0], [0.0, 0.0, 180.0]);
-        let source: Vec<Vector3<f64>> = sample(&mut rng, &corridor, 2000, 0.01)
-            .into_iter()
-            .map(|p| (truth.inverse() * Point3::from(p)).coords)
-            .collect();
-        let source_views: Vec<Vector3<f64>> = source.iter().map(|p| -p.normalize()).collect();
+        let [(target, target_views), (source, source_views)] =
+            two_views(&mut rng, &CORRIDOR, (2000, 0.01), &truth);
         let guess = pose([1.0, -0.4, 0.0], [0.0, 0.0, 5.0]) * truth;
         let WideAlignment {
             pose: est,
@@ -1260,14 +1281,9 @@ mod tests {
                 faces.push((1, y, (x, x + 0.25), (z, z + 0.25)));
             }
         }
-        let target = sample(&mut rng, &faces, 120, 0.003);
-        let target_views: Vec<Vector3<f64>> = target.iter().map(|p| -p.normalize()).collect();
         let truth = pose([0.1, -0.05, 0.2], [2.0, -3.0, 4.0]);
-        let source: Vec<Vector3<f64>> = sample(&mut rng, &faces, 120, 0.003)
-            .into_iter()
-            .map(|p| (truth.inverse() * Point3::from(p)).coords)
-            .collect();
-        let source_views: Vec<Vector3<f64>> = source.iter().map(|p| -p.normalize()).collect();
+        let [(target, target_views), (source, source_views)] =
+            two_views(&mut rng, &faces, (120, 0.003), &truth);
         let guess = pose([0.02, 0.0, -0.02], [0.0, 0.0, 0.5]) * truth;
         let pair = |search: &EdgeSearch| {
             register_pair(
@@ -1293,12 +1309,8 @@ mod tests {
     #[test]
     fn parallel_walls_alone_give_no_wide_alignment() {
         let mut rng = ChaCha8Rng::seed_from_u64(6);
-        let walls = [
-            (1, -1.0, (-1.0, 12.0), (-1.3, 1.2)),
-            (1, 1.0, (-1.0, 12.0), (-1.3, 1.2)),
-        ];
-        let target = sample(&mut rng, &walls, 2000, 0.01);
-        let views: Vec<Vector3<f64>> = target.iter().map(|p| -p.normalize()).collect();
+        let target = sample(&mut rng, &CORRIDOR[..2], 2000, 0.01);
+        let views = views_from_origin(&target);
         let guess = pose([0.0, 0.1, 0.0], [0.0, 0.0, 2.0]);
         assert!(
             align_wide_planes(
