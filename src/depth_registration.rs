@@ -1068,6 +1068,9 @@ mod tests {
         (2, 1.2, (-1.0, 12.0), (-1.0, 1.0)),
     ];
 
+    /// Points, each with its unit direction to the camera that saw it.
+    type Seen = (Vec<Vector3<f64>>, Vec<Vector3<f64>>);
+
     /// Unit directions from `points` to a camera at the origin.
     fn views_from_origin(points: &[Vector3<f64>]) -> Vec<Vector3<f64>> {
         points.iter().map(|p| -p.normalize()).collect()
@@ -1081,7 +1084,7 @@ mod tests {
         faces: &[Face],
         (per_face, noise): (usize, f64),
         truth: &Isometry3<f64>,
-    ) -> [(Vec<Vector3<f64>>, Vec<Vector3<f64>>); 2] {
+    ) -> [Seen; 2] {
         let target = sample(rng, faces, per_face, noise);
         let source: Vec<Vector3<f64>> = sample(rng, faces, per_face, noise)
             .into_iter()
