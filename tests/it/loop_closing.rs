@@ -240,13 +240,23 @@ fn with_false_frames(
     kind: homing::io::perturb::FaultKind,
     p: f64,
 ) -> homing::output::Summary {
+    with_false_frames_and_config(scenario, kind, p, None)
+}
+
+/// [`with_false_frames`] with `config` (TOML text) as the run's `--config`.
+fn with_false_frames_and_config(
+    scenario: &str,
+    kind: homing::io::perturb::FaultKind,
+    p: f64,
+    config: Option<&str>,
+) -> homing::output::Summary {
     use homing::io::perturb::{FaultRate, PerturbationSpec};
     let spec = PerturbationSpec {
         fault_rates: vec![FaultRate { kind, p }],
         seed: 1,
         ..Default::default()
     };
-    common::run_small(scenario, spec).summary
+    common::run_small_with_config(scenario, spec, config).summary
 }
 
 /// Asserts no wrong closure was accepted and the largest map holds at least `min_largest` of
@@ -322,28 +332,12 @@ fn two_false_frames_on_a_slow_sequence_keep_one_map() {
 /// measured 94 % posed, ATE 2.1 cm, one pool rolled back.
 #[test]
 fn an_inconsistent_closure_is_undone_before_the_older_pools_it_contradicts() {
-    use homing::io::perturb::{FaultKind, FaultRate, PerturbationSpec};
-    let tmp = tempfile::tempdir().unwrap();
-    let seq = tmp.path().join("revisit");
-    common::synth_small("revisit", &seq, None);
-    let config = tmp.path().join("angle15.toml");
-    std::fs::write(&config, "[controller]\nknown_view_angle_deg = 15.0\n").unwrap();
-    let s = homing::system::run(&homing::system::RunOptions {
-        sequence: seq,
-        out: tmp.path().join("run"),
-        config: Some(config),
-        perturb: PerturbationSpec {
-            fault_rates: vec![FaultRate {
-                kind: FaultKind::Black,
-                p: 0.05,
-            }],
-            seed: 1,
-            ..Default::default()
-        },
-        eval: true,
-        ..Default::default()
-    })
-    .unwrap();
+    let s = with_false_frames_and_config(
+        "revisit",
+        homing::io::perturb::FaultKind::Black,
+        0.05,
+        Some("[controller]\nknown_view_angle_deg = 15.0\n"),
+    );
     assert_no_wrong_closure(&s, 0.9);
     assert!(
         s.pools_rolled_back <= 1,

@@ -130,13 +130,28 @@ pub struct SmallRun {
 
 /// Generates scenario `name` small ([`synth_small`]) and runs it under `perturb`, with evaluation.
 pub fn run_small(name: &str, perturb: homing::io::perturb::PerturbationSpec) -> SmallRun {
+    run_small_with_config(name, perturb, None)
+}
+
+/// [`run_small`] with `config` (TOML text) as the run's `--config`.
+pub fn run_small_with_config(
+    name: &str,
+    perturb: homing::io::perturb::PerturbationSpec,
+    config: Option<&str>,
+) -> SmallRun {
     let tmp = tempfile::tempdir().unwrap();
     let seq = tmp.path().join(name);
     synth_small(name, &seq, None);
     let out = tmp.path().join("run");
+    let config = config.map(|text| {
+        let path = tmp.path().join("config.toml");
+        std::fs::write(&path, text).unwrap();
+        path
+    });
     let summary = homing::system::run(&homing::system::RunOptions {
         sequence: seq.clone(),
         out: out.clone(),
+        config,
         perturb,
         eval: true,
         ..Default::default()
