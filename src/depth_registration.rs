@@ -614,10 +614,31 @@ struct WidePlane {
     members: Vec<Vector3<f64>>,
 }
 
-impl WidePlane {
+/// A plane's equation, `normal · q + offset = 0`: all the edge needs of a paired plane.
+#[derive(Clone, Copy)]
+struct PlaneEquation {
+    normal: Vector3<f64>,
+    offset: f64,
+}
+
+impl PlaneEquation {
     /// Signed distance of `q` to the plane.
     fn distance(&self, q: &Vector3<f64>) -> f64 {
         self.normal.dot(q) + self.offset
+    }
+}
+
+impl WidePlane {
+    fn equation(&self) -> PlaneEquation {
+        PlaneEquation {
+            normal: self.normal,
+            offset: self.offset,
+        }
+    }
+
+    /// Signed distance of `q` to the plane.
+    fn distance(&self, q: &Vector3<f64>) -> f64 {
+        self.equation().distance(q)
     }
 
     /// Root mean square distance of `other`'s points, placed by `pose`, to this plane.
@@ -784,7 +805,7 @@ fn align_wide_planes(
     fits.then(|| WideAlignment {
         pose: est,
         hessian: info,
-        paired: pairs.iter().map(|&(_, ti)| target[ti].clone()).collect(),
+        paired: pairs.iter().map(|&(_, ti)| target[ti].equation()).collect(),
     })
 }
 
@@ -794,7 +815,7 @@ struct WideAlignment {
     /// Gauss–Newton Hessian of the alignment, every pair weighing the same.
     hessian: Matrix6<f64>,
     /// The target planes that were paired.
-    paired: Vec<WidePlane>,
+    paired: Vec<PlaneEquation>,
 }
 
 /// The edge of a pair whose wide planes aligned: the alignment itself, measured on every
