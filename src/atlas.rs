@@ -384,6 +384,23 @@ impl Atlas {
         out
     }
 
+    /// How far loop pool `pool`'s correction moves the keyframe that recognised the place:
+    /// metres there, and degrees. `None` for a merge, or when that keyframe is gone.
+    pub fn loop_jump(&self, pool: PoolId) -> Option<(f64, f64)> {
+        let p = self.pools.get(pool as usize)?;
+        let PoolKind::Loop { map, correction } = &p.kind else {
+            return None;
+        };
+        let m = self.maps.get(map)?;
+        let query = p.edges.iter().find_map(|e| m.keyframes.get(&e.query))?;
+        let c = query.pose_cw.inverse().translation.vector;
+        let s = Sim3::from(correction);
+        Some((
+            (s.transform_point(&c) - c).norm(),
+            s.rotation.angle().to_degrees(),
+        ))
+    }
+
     pub fn add_edges(&mut self, pool: PoolId, edges: impl IntoIterator<Item = ClosureEdge>) {
         if let Some(p) = self.pools.get_mut(pool as usize) {
             p.edges.extend(edges);

@@ -81,8 +81,12 @@ pub struct Valid {
     /// Lengths in the matched map per length in the query's map (monocular; 1 with depth):
     /// query-camera coordinates times `scale` are `pose_in_match`'s camera coordinates.
     pub scale: f64,
-    /// Query keypoint → matched-map point, inliers of the refinement.
+    /// Query keypoint → matched-map point, inliers of the refinement; with `own_points`, the
+    /// query's points in its own map instead.
     pub matches: Vec<Option<PointId>>,
+    /// Validated from the query's depth ([`validate_from_query_depth`]): the matched map's
+    /// points were too few, and tracking goes on from the query's own points once merged.
+    pub own_points: bool,
     pub n_inliers: usize,
     /// Information of `pose_in_match` (Gauss–Newton, scaled by the residual variance).
     pub information: Matrix6<f64>,
@@ -238,7 +242,203 @@ pub fn validate(
         pose_in_match: pose,
         scale,
         matches: inlier_matches,
+        own_points: false,
         n_inliers: n,
+        information,
+    }))
+}
+
+/// Validation with the roles reversed, for the lost place's keyframe after a kidnapping: the
+/// query's key points with depth (3-D in its camera) matched by descriptor to all of the
+/// keyframe's key points, with or without a map point, and the keyframe's camera placed among
+/// them by PnP RANSAC. The lost place is often a view from afar (a corridor looking into the
+/// room the camera was carried into): its far content had no depth, so it has no map points
+/// for [`validate`] to match, while the new map's first frames, closer, have depth for it.
+/// Where the query does see the matched map's points (at least `min_inliers` of them from
+/// that pose), the view is not one from afar: the pose is refined on them and, as for any
+/// candidate of the lost place, must then reach `min_map_inliers`.
+/// `own_matches` (the query frame's points in its own map) go on as the valid candidate's
+/// matches: after the merge they are points of the joined map, and tracking goes on from them.
+pub fn validate_from_query_depth(
+    cfg: &LoopClosingConfig,
+    geo: &ImageGeometry,
+    q: &Query,
+    map: &Map,
+    matched: KfId,
+    own_matches: &[Option<PointId>],
+    min_map_inliers: usize,
+) -> Verdict {
+    let reject = |reason, inliers, pose| Verdict::Rejected {
+        matched,
+        reason,
+        inliers,
+        pose_in_match: pose,
+    };
+    let Some(kf) = map.keyframes.get(&matched) else {
+        return reject(Rejection::TooFewMatches, 0, None);
+    };
+    // Query key point with depth → nearest keyframe key point (≤ TH_LOW, Lowe's ratio), one
+    // query key point per keyframe key point, in the dominant changes of orientation.
+    let mut best: BTreeMap<usize, (u32, usize)> = BTreeMap::new();
+    for qi in (0..q.m.len()).filter(|&i| q.m.depth[i] > 0.0) {
+        let (mut b1, mut b2, mut bj) = (u32::MAX, u32::MAX, usize::MAX);
+        for (j, d) in kf.descriptors.iter().enumerate() {
+            let h = hamming(&q.m.descriptors[qi], d);
+            if h < b1 {
+                (b2, b1, bj) = (b1, h, j);
+            } else if h < b2 {
+                b2 = h;
+            }
+        }
+        if bj == usize::MAX
+            || b1 > SEARCH_MAX_DISTANCE
+            || (b2 != u32::MAX && b1 as f64 >= SEARCH_RATIO * b2 as f64)
+        {
+            continue;
+        }
+        if best.get(&bj).is_none_or(|&(h, _)| b1 < h) {
+            best.insert(bj, (b1, qi));
+        }
+    }
+    let mut pairs: Vec<(usize, usize)> = best.iter().map(|(&j, &(_, qi))| (qi, j)).collect();
+    let bin =
+        |&(qi, j): &(usize, usize)| rotation_bin(kf.keypoints[j].angle, q.m.keypoints[qi].angle);
+    let keep = dominant_rotation_bins(pairs.iter().map(bin));
+    pairs.retain(|x| keep.contains(&bin(x)));
+    if pairs.len() < cfg.min_matches as usize {
+        return reject(Rejection::TooFewMatches, pairs.len(), None);
+    }
+    // The keyframe's camera among the query's points: T_kq (query camera → keyframe camera).
+    let pts: Vec<Vector3<f64>> = pairs
+        .iter()
+        .map(|&(qi, _)| backproject(&geo.intr, &q.m.keypoints[qi].un, q.m.depth[qi] as f64))
+        .collect();
+    let uv: Vec<Vector2<f64>> = pairs.iter().map(|&(_, j)| kf.keypoints[j].un).collect();
+    let Some(found) = pnp_ransac(&pts, &uv, &geo.intr, 4.0, cfg.min_inliers as usize)
+        .ok()
+        .flatten()
+    else {
+        return reject(Rejection::Geometry, 0, None);
+    };
+    // Robust refinement of T_kq on the keyframe's observations of the query's points.
+    let obs: Vec<PoseObservation> = pairs
+        .iter()
+        .zip(&pts)
+        .map(|(&(_, j), x)| PoseObservation {
+            point_w: *x,
+            obs: Observation::Mono {
+                uv: kf.keypoints[j].un,
+            },
+            info: octave_information(kf.keypoints[j].octave as u32),
+            shutter: Isometry3::identity(),
+        })
+        .collect();
+    let r = refine_pose(&found.pose, &obs, &geo.intr, &PoseParams::default());
+    if r.n_inliers < cfg.min_inliers as usize {
+        return reject(Rejection::Refinement, r.n_inliers, None);
+    }
+    let t_kq = r.pose;
+    let mut pose = t_kq.inverse() * kf.pose_cw;
+    // The matched map's own points where the query sees them: with enough of them the pose
+    // is the validator's usual one, as precise as any relocalization.
+    let mut local: Vec<KfId> = vec![matched];
+    local.extend(kf.best_covisible(10));
+    let mut matches: Vec<Option<PointId>> = vec![None; q.m.len()];
+    search_local_map(geo, q.m, map, &local, &pose, 8.0, &mut matches);
+    let (refined, inl) = refine(geo, q.m, map, &pose, &matches);
+    let on_points = inl.iter().filter(|b| **b).count();
+    if on_points >= cfg.min_inliers as usize && on_points < min_map_inliers {
+        return reject(Rejection::Refinement, on_points, Some(refined));
+    }
+    let information = if on_points >= cfg.min_inliers as usize {
+        pose = refined;
+        let inlier_matches: Vec<Option<PointId>> = matches
+            .iter()
+            .zip(&inl)
+            .map(|(m, ok)| if *ok { *m } else { None })
+            .collect();
+        pose_information(geo, q.m, map, &pose, &inlier_matches)
+    } else {
+        // Information of the query's pose in the matched map from the keyframe's
+        // observations (central differences over a left perturbation of that pose).
+        let inliers: Vec<&PoseObservation> = obs
+            .iter()
+            .zip(&r.inliers)
+            .filter_map(|(o, ok)| ok.then_some(o))
+            .collect();
+        let residuals = |p: &Isometry3<f64>| -> Vec<Vector2<f64>> {
+            let t = kf.pose_cw * p.inverse();
+            inliers
+                .iter()
+                .map(|o| {
+                    let c = t * Point3::from(o.point_w);
+                    let Observation::Mono { uv } = o.obs else {
+                        unreachable!("built as Mono above")
+                    };
+                    Vector2::new(
+                        geo.intr.fx * c.x / c.z + geo.intr.cx,
+                        geo.intr.fy * c.y / c.z + geo.intr.cy,
+                    ) - uv
+                })
+                .collect()
+        };
+        let h = 1e-6;
+        let mut jac = vec![nalgebra::Matrix2x6::<f64>::zeros(); inliers.len()];
+        for k in 0..6 {
+            let mut d = nalgebra::Vector6::zeros();
+            d[k] = h;
+            let plus = residuals(&se3::retract(&pose, &d));
+            let minus = residuals(&se3::retract(&pose, &-d));
+            for (i, (a, b)) in plus.iter().zip(&minus).enumerate() {
+                jac[i].set_column(k, &((a - b) / (2.0 * h)));
+            }
+        }
+        let res = residuals(&pose);
+        let (mut info, mut chi2) = (Matrix6::zeros(), 0.0);
+        for ((j, e), o) in jac.iter().zip(&res).zip(&inliers) {
+            info += j.transpose() * j * o.info;
+            chi2 += o.info * e.norm_squared();
+        }
+        let dof = 2 * inliers.len();
+        let var = if dof > 6 {
+            (chi2 / (dof - 6) as f64).max(1.0)
+        } else {
+            1.0
+        };
+        info / var
+    };
+    let sigma = information
+        .try_inverse()
+        .map(|c| {
+            let d = c.diagonal().map(|x| x.max(0.0).sqrt());
+            (
+                d.rows(0, 3).norm().to_degrees(),
+                100.0 * d.rows(3, 3).norm(),
+            )
+        })
+        .unwrap_or((f64::INFINITY, f64::INFINITY));
+    tracing::debug!(
+        "validate kf {matched} from the query's depth: {} pairs, {} PnP inliers, {} refined, {on_points} on the matched map's points, sigma {:.2} deg {:.2} cm",
+        pairs.len(),
+        found.n_inliers,
+        r.n_inliers,
+        sigma.0,
+        sigma.1
+    );
+    Verdict::Valid(Box::new(Valid {
+        frame: q.m.frame,
+        t: q.m.t,
+        query_map: q.map,
+        match_map: map.id,
+        matched,
+        query_kf: q.kf,
+        reference_kf: q.reference_kf.or(q.kf),
+        query_pose: q.pose,
+        pose_in_match: pose,
+        scale: 1.0,
+        matches: own_matches.to_vec(),
+        own_points: true,
+        n_inliers: r.n_inliers,
         information,
     }))
 }
@@ -710,6 +910,7 @@ mod tests {
             pose_in_match: alignment.inverse(),
             scale: 1.0,
             matches: vec![],
+            own_points: false,
             n_inliers: 50,
             information: Matrix6::identity(),
         }

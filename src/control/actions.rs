@@ -36,6 +36,10 @@ const LOST_PLACE_KEYFRAMES: usize = 10;
 const LOST_PLACE_RADIUS_M: f64 = 1.0;
 const LOST_PLACE_WINDOW_S: f64 = 10.0;
 const LOST_PLACE_MIN_INLIERS: usize = 150;
+/// A wrong loop across a merge's seam that moved its camera by more than these (m, degrees)
+/// was not made possible by the merge (see `recover`).
+const LOCAL_LOOP_M: f64 = 1.0;
+const LOCAL_LOOP_DEG: f64 = 15.0;
 
 /// Shared map points that make a keyframe part of a look-alike place (the covisibility
 /// graph's edge threshold).
@@ -689,6 +693,23 @@ impl StateMachine {
                     pose_in_match: Some(v.pose_in_match),
                 };
             }
+            // The lost place seen from afar has few map points where the camera now is; the
+            // new frame's depth can still place it (see `validate_from_query_depth`).
+            if from_lost_place
+                && self.cfg.loop_closing.lost_place_from_query_depth
+                && !self.mono
+                && matches!(verdict, Verdict::Rejected { .. })
+            {
+                verdict = loop_validator::validate_from_query_depth(
+                    &self.cfg.loop_closing,
+                    &self.geo,
+                    &q,
+                    &self.atlas.maps[&match_map],
+                    c.image as KfId,
+                    &track.matches,
+                    LOST_PLACE_MIN_INLIERS,
+                );
+            }
             let window = self.cfg.loop_closing.pool_window_frames as usize;
             // Logged as its own kind; it joins the relocalization pool.
             let kind = if from_lost_place {
@@ -1021,9 +1042,11 @@ impl StateMachine {
         // matched keyframe (ORB-SLAM after a relocalization): the local map is then the old
         // keyframes the camera is back among, so new keyframes, if any, observe the old points
         // instead of duplicating them.
+        // A frame validated from its own depth (`Valid::own_points`) tracks on from its own
+        // points and reference keyframe, now part of the joined map.
         let own_ref = last
             .reference_kf
-            .filter(|_| into == from && last.query_kf.is_none());
+            .filter(|_| (into == from && last.query_kf.is_none()) || last.own_points);
         let own_ref_before = own_ref
             .and_then(|r| self.atlas.maps[&into].keyframes.get(&r))
             .map(|k| k.pose_cw);
@@ -1043,11 +1066,17 @@ impl StateMachine {
         // optimised; a relocalized frame relative to its matched keyframe, which the
         // optimisation may have moved).
         let map = &self.atlas.maps[&into];
+        // The query's pose in the map it is now part of (a merge moved its map).
+        let query_now = if into == from {
+            last.query_pose
+        } else {
+            last.query_pose * acc.alignment.to_isometry().inverse()
+        };
         let own = match (own_ref, own_ref_before) {
             (Some(r), Some(before)) => map.keyframes.get(&r).map(|after| {
                 (
-                    last.query_pose * before.inverse() * after.pose_cw,
-                    last.matched,
+                    query_now * before.inverse() * after.pose_cw,
+                    if last.own_points { r } else { last.matched },
                 )
             }),
             _ => None,
@@ -1307,8 +1336,22 @@ impl StateMachine {
             // led to, whose undo took the contradicting keyframe with it).
             // (`crossed` holds only loops standing before the recovery: one rolled back now
             // was undone by it.)
+            // Only a loop the merge made possible implicates it: one that moved the camera by
+            // little (the merge had put the look-alike place next to it). A loop that jumped
+            // across the scene was proposed by appearance alone, merge or not (small
+            // `aliasing` after a 1 s drop: room B, joined to the corridor through the lost
+            // place, recognised as room A 5 m away and turned by 180°; undoing the correct
+            // merge with it let room B be merged into room A right after).
             for (&l, merges) in &crossed {
                 if !self.atlas.pools[l as usize].rolled_back {
+                    continue;
+                }
+                if let Some((metres, degrees)) = self.atlas.loop_jump(l)
+                    && (metres > LOCAL_LOOP_M || degrees > LOCAL_LOOP_DEG)
+                {
+                    tracing::info!(
+                        "pool {l}, a wrong loop across merges {merges:?}, moved its camera {metres:.2} m and {degrees:.1}°: not made possible by a merge, which stands"
+                    );
                     continue;
                 }
                 for &m in merges {

@@ -195,6 +195,35 @@ fn aliasing_after_a_kidnapping_is_not_merged() {
     aliasing_merge_refused(&["18.799s:19.799s"]);
 }
 
+/// With `loop_closing.lost_place_from_query_depth` (off by default), small `aliasing` after
+/// the same 1 s drop: the lost place is the corridor looking into room B, whose far content had
+/// no depth there and so no map points, while the new map's first frames, closer, have depth
+/// for it; the new map is joined to the lost one at once. Near the end the look-alike loop
+/// into room A (11 m and 166° away) is undone, and the merge it crossed stands: it was not
+/// what made that loop possible. Without the key the two maps stay apart (largest 48.6 %).
+#[test]
+fn a_lost_place_seen_from_afar_is_joined_from_the_new_frames_depth() {
+    let run = common::run_small_with_config(
+        "aliasing",
+        homing::io::perturb::PerturbationSpec {
+            drops: vec!["18.799s:19.799s".parse().unwrap()],
+            ..Default::default()
+        },
+        Some("[loop_closing]\nlost_place_from_query_depth = true\n"),
+    );
+    let e = run.summary.evaluation.as_ref().unwrap();
+    assert_eq!(e["closures"]["accepted_wrong"].as_u64().unwrap(), 0, "{e}");
+    let coverage = e["largest_map_coverage"].as_f64().unwrap();
+    assert!(coverage > 0.85, "the maps were not joined: {e}");
+    let closures = std::fs::read_to_string(run.out.join("closures.csv")).unwrap();
+    assert!(
+        closures
+            .lines()
+            .any(|l| l.contains(",lost-place,") && l.contains(",accepted,")),
+        "not joined through the lost place: {closures}"
+    );
+}
+
 /// Small `aliasing` with frames dropped at `drops`: asserts that no wrong closure stands and
 /// that a look-alike merge was proposed and refused by the merge depth check; returns
 /// closures.csv.
