@@ -359,53 +359,14 @@ pub fn validate_from_query_depth(
             .collect();
         pose_information(geo, q.m, map, &pose, &inlier_matches)
     } else {
-        // Information of the query's pose in the matched map from the keyframe's
-        // observations (central differences over a left perturbation of that pose).
-        let inliers: Vec<&PoseObservation> = obs
+        let inliers: Vec<(Vector3<f64>, Vector2<f64>, f64)> = obs
             .iter()
+            .zip(&uv)
             .zip(&r.inliers)
-            .filter_map(|(o, ok)| ok.then_some(o))
+            .filter(|(_, ok)| **ok)
+            .map(|((o, uv), _)| (o.point_w, *uv, o.info))
             .collect();
-        let residuals = |p: &Isometry3<f64>| -> Vec<Vector2<f64>> {
-            let t = kf.pose_cw * p.inverse();
-            inliers
-                .iter()
-                .map(|o| {
-                    let c = t * Point3::from(o.point_w);
-                    let Observation::Mono { uv } = o.obs else {
-                        unreachable!("built as Mono above")
-                    };
-                    Vector2::new(
-                        geo.intr.fx * c.x / c.z + geo.intr.cx,
-                        geo.intr.fy * c.y / c.z + geo.intr.cy,
-                    ) - uv
-                })
-                .collect()
-        };
-        let h = 1e-6;
-        let mut jac = vec![nalgebra::Matrix2x6::<f64>::zeros(); inliers.len()];
-        for k in 0..6 {
-            let mut d = nalgebra::Vector6::zeros();
-            d[k] = h;
-            let plus = residuals(&se3::retract(&pose, &d));
-            let minus = residuals(&se3::retract(&pose, &-d));
-            for (i, (a, b)) in plus.iter().zip(&minus).enumerate() {
-                jac[i].set_column(k, &((a - b) / (2.0 * h)));
-            }
-        }
-        let res = residuals(&pose);
-        let (mut info, mut chi2) = (Matrix6::zeros(), 0.0);
-        for ((j, e), o) in jac.iter().zip(&res).zip(&inliers) {
-            info += j.transpose() * j * o.info;
-            chi2 += o.info * e.norm_squared();
-        }
-        let dof = 2 * inliers.len();
-        let var = if dof > 6 {
-            (chi2 / (dof - 6) as f64).max(1.0)
-        } else {
-            1.0
-        };
-        info / var
+        information_seen_from(geo, &kf.pose_cw, &pose, &inliers)
     };
     let sigma = information
         .try_inverse()
@@ -441,6 +402,54 @@ pub fn validate_from_query_depth(
         n_inliers: r.n_inliers,
         information,
     }))
+}
+
+/// Information of a query camera's pose `pose_cw` (left perturbation) from a keyframe's
+/// observations (`kf_cw`) of points in the query's camera frame: (point, pixel, information)
+/// each. Central differences, scaled by the residual variance like [`pose_information`].
+fn information_seen_from(
+    geo: &ImageGeometry,
+    kf_cw: &Isometry3<f64>,
+    pose_cw: &Isometry3<f64>,
+    observations: &[(Vector3<f64>, Vector2<f64>, f64)],
+) -> Matrix6<f64> {
+    let residuals = |p: &Isometry3<f64>| -> Vec<Vector2<f64>> {
+        let kf_from_query = kf_cw * p.inverse();
+        observations
+            .iter()
+            .map(|(x, uv, _)| {
+                // Inliers lie in front of both cameras; a step of 1e-6 keeps them there.
+                let c = kf_from_query * Point3::from(*x);
+                geo.intr.project(&c.coords).unwrap_or(*uv) - uv
+            })
+            .collect()
+    };
+    let h = 1e-6;
+    let mut jac = vec![nalgebra::Matrix2x6::<f64>::zeros(); observations.len()];
+    for k in 0..6 {
+        let mut d = nalgebra::Vector6::zeros();
+        d[k] = h;
+        let plus = residuals(&se3::retract(pose_cw, &d));
+        let minus = residuals(&se3::retract(pose_cw, &-d));
+        for (j, (a, b)) in jac.iter_mut().zip(plus.iter().zip(&minus)) {
+            j.set_column(k, &((a - b) / (2.0 * h)));
+        }
+    }
+    let (mut info, mut chi2) = (Matrix6::zeros(), 0.0);
+    for ((j, e), (_, _, w)) in jac.iter().zip(&residuals(pose_cw)).zip(observations) {
+        info += j.transpose() * j * *w;
+        chi2 += w * e.norm_squared();
+    }
+    info / residual_variance(chi2, 2 * observations.len())
+}
+
+/// χ² per degree of freedom of a 6-parameter fit, at least 1 (1 with too few residuals).
+fn residual_variance(chi2: f64, dof: usize) -> f64 {
+    if dof > 6 {
+        (chi2 / (dof - 6) as f64).max(1.0)
+    } else {
+        1.0
+    }
 }
 
 /// Largest Hamming distance of a descriptor-search match (ORB-SLAM's TH_LOW).
@@ -738,12 +747,7 @@ pub fn pose_information(
         chi2 += o.info * lin.residual.norm_squared();
         dof += o.obs.dim();
     }
-    let var = if dof > 6 {
-        (chi2 / (dof - 6) as f64).max(1.0)
-    } else {
-        1.0
-    };
-    h / var
+    h / residual_variance(chi2, dof)
 }
 
 /// A closure pool that reached consensus.
