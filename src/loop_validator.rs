@@ -93,6 +93,27 @@ pub struct Valid {
 }
 
 impl Valid {
+    /// Query `q` found at `pose_in_match` in map `match_map` through its keyframe `matched`:
+    /// scale 1, no matches, no inliers and no information yet.
+    fn of_query(q: &Query, match_map: u32, matched: KfId, pose_in_match: Isometry3<f64>) -> Self {
+        Valid {
+            frame: q.m.frame,
+            t: q.m.t,
+            query_map: q.map,
+            match_map,
+            matched,
+            query_kf: q.kf,
+            reference_kf: q.reference_kf.or(q.kf),
+            query_pose: q.pose,
+            pose_in_match,
+            scale: 1.0,
+            matches: Vec::new(),
+            own_points: false,
+            n_inliers: 0,
+            information: Matrix6::zeros(),
+        }
+    }
+
     /// The alignment this candidate implies: query-map world → matched-map world.
     pub fn alignment(&self) -> Sim3 {
         let rigid = Sim3::from_isometry(&(self.pose_in_match.inverse() * self.query_pose));
@@ -123,6 +144,16 @@ pub enum Verdict {
     },
 }
 
+/// The rejection of keyframe `matched`, from a reason, the inliers found and the best pose.
+fn rejection_of(matched: KfId) -> impl Fn(Rejection, usize, Option<Isometry3<f64>>) -> Verdict {
+    move |reason, inliers, pose_in_match| Verdict::Rejected {
+        matched,
+        reason,
+        inliers,
+        pose_in_match,
+    }
+}
+
 /// What the query side brings to validation.
 pub struct Query<'a> {
     pub m: &'a Measurement,
@@ -147,12 +178,7 @@ pub fn validate(
     c: &Candidate,
 ) -> Verdict {
     let matched = c.image as KfId;
-    let reject = |reason, inliers, pose| Verdict::Rejected {
-        matched,
-        reason,
-        inliers,
-        pose_in_match: pose,
-    };
+    let reject = rejection_of(matched);
     let Some(kf) = map.keyframes.get(&matched) else {
         return reject(Rejection::TooFewMatches, 0, None);
     };
@@ -231,20 +257,11 @@ pub fn validate(
     };
     let information = pose_information(geo, q.m, map, &pose, &inlier_matches);
     Verdict::Valid(Box::new(Valid {
-        frame: q.m.frame,
-        t: q.m.t,
-        query_map: q.map,
-        match_map: map.id,
-        matched,
-        query_kf: q.kf,
-        reference_kf: q.reference_kf.or(q.kf),
-        query_pose: q.pose,
-        pose_in_match: pose,
         scale,
         matches: inlier_matches,
-        own_points: false,
         n_inliers: n,
         information,
+        ..Valid::of_query(q, map.id, matched, pose)
     }))
 }
 
@@ -268,12 +285,7 @@ pub fn validate_from_query_depth(
     own_matches: &[Option<PointId>],
     min_map_inliers: usize,
 ) -> Verdict {
-    let reject = |reason, inliers, pose| Verdict::Rejected {
-        matched,
-        reason,
-        inliers,
-        pose_in_match: pose,
-    };
+    let reject = rejection_of(matched);
     let Some(kf) = map.keyframes.get(&matched) else {
         return reject(Rejection::TooFewMatches, 0, None);
     };
@@ -387,20 +399,11 @@ pub fn validate_from_query_depth(
         sigma.1
     );
     Verdict::Valid(Box::new(Valid {
-        frame: q.m.frame,
-        t: q.m.t,
-        query_map: q.map,
-        match_map: map.id,
-        matched,
-        query_kf: q.kf,
-        reference_kf: q.reference_kf.or(q.kf),
-        query_pose: q.pose,
-        pose_in_match: pose,
-        scale: 1.0,
         matches: own_matches.to_vec(),
         own_points: true,
         n_inliers: r.n_inliers,
         information,
+        ..Valid::of_query(q, map.id, matched, pose)
     }))
 }
 
