@@ -710,6 +710,47 @@ mod tests {
         assert!((pc - pc_before).norm() < 1e-12);
     }
 
+    /// A loop's jump is measured where its query keyframe is: a correction that turns the map
+    /// by 180° about a point 5 m from that keyframe moves it by 10 m, whatever the origin.
+    #[test]
+    fn a_loop_jump_is_measured_at_its_query_keyframe() {
+        let mut atlas = Atlas::new();
+        let a = small_map(&mut atlas, 0);
+        let kf = *atlas.maps[&a].keyframes.keys().next().unwrap();
+        let c = atlas.maps[&a].keyframes[&kf].center();
+        // 180° about the vertical through the point 5 m along x from the keyframe.
+        let pivot = c + Vector3::new(5.0, 0.0, 0.0);
+        let rotation = Rotation3::from_euler_angles(0.0, std::f64::consts::PI, 0.0);
+        let s = Sim3 {
+            rotation,
+            translation: pivot - rotation * pivot,
+            scale: 1.0,
+        };
+        let p = atlas.begin_pool(
+            PoolKind::Loop {
+                map: a,
+                correction: (&s).into(),
+            },
+            5,
+            5.0,
+        );
+        assert_eq!(atlas.loop_jump(p), None, "no edge names the query yet");
+        atlas.add_edges(
+            p,
+            [ClosureEdge::new(
+                p,
+                kf,
+                kf,
+                &Sim3::identity(),
+                (1.0, 1.0),
+                Matrix6::identity(),
+            )],
+        );
+        let (metres, degrees) = atlas.loop_jump(p).unwrap();
+        assert!((metres - 10.0).abs() < 1e-9, "{metres}");
+        assert!((degrees - 180.0).abs() < 1e-6, "{degrees}");
+    }
+
     /// Merges map `b` into map `a` (identity alignment) as pool of frame 5; returns the pool.
     fn merged_at_frame_5(atlas: &mut Atlas, a: MapId, b: MapId) -> PoolId {
         let p = atlas.begin_pool(
