@@ -1340,7 +1340,7 @@ impl StateMachine {
             // little (the merge had put the look-alike place next to it). A loop that jumped
             // across the scene was proposed by appearance alone, merge or not (small
             // `aliasing` after a 1 s drop: room B, joined to the corridor through the lost
-            // place, recognised as room A 5 m away and turned by 180°; undoing the correct
+            // place, recognised as room A: a loop of 11 m and 166°; undoing the correct
             // merge with it let room B be merged into room A right after).
             for (&l, merges) in &crossed {
                 if !self.atlas.pools[l as usize].rolled_back {
