@@ -17,7 +17,7 @@ use crate::map::{KfId, Map};
 use crate::map_merger::bundle_adjust;
 use crate::optim::{BaParams, Intrinsics};
 use crate::preprocess::{
-    ImageGeometry, Measurement, dominant_rotation_bins, hamming, rotation_bin,
+    ImageGeometry, Measurement, dominant_rotation_bins, nearest_descriptor, rotation_bin,
 };
 use crate::two_view::{TwoViewParams, initialize_two_view};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector2};
@@ -261,28 +261,22 @@ fn match_to_reference(r: &Measurement, m: &Measurement) -> Matches {
     for (a, ka) in r.keypoints.iter().enumerate() {
         let lo = ka.octave.saturating_sub(1);
         let hi = ka.octave.saturating_add(1);
-        let (mut b1, mut b2, mut bi) = (u32::MAX, u32::MAX, usize::MAX);
-        for b in m.grid.in_area(
+        let near = m.grid.in_area(
             &m.keypoints,
             ka.un.x,
             ka.un.y,
             MONO_SEARCH_RADIUS_PX,
             lo,
             hi,
-        ) {
-            let h = hamming(&r.descriptors[a], &m.descriptors[b]);
-            if h < b1 {
-                (b2, b1, bi) = (b1, h, b);
-            } else if h < b2 {
-                b2 = h;
-            }
-        }
-        if bi == usize::MAX || b1 > MONO_MAX_DISTANCE {
+        );
+        let Some((bi, b1)) = nearest_descriptor(
+            &r.descriptors[a],
+            near.into_iter().map(|b| (b, &m.descriptors[b])),
+            MONO_MAX_DISTANCE,
+            MONO_MATCH_RATIO,
+        ) else {
             continue;
-        }
-        if b2 != u32::MAX && b1 as f64 >= MONO_MATCH_RATIO * b2 as f64 {
-            continue;
-        }
+        };
         if best[bi].is_none_or(|(d, _)| b1 < d) {
             best[bi] = Some((b1, a));
         }

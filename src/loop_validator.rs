@@ -30,7 +30,7 @@ use crate::optim::{
     Observation, PoseObservation, PoseParams, octave_information, refine_pose, se3,
 };
 use crate::preprocess::{
-    ImageGeometry, Measurement, dominant_rotation_bins, hamming, rotation_bin,
+    ImageGeometry, Measurement, dominant_rotation_bins, hamming, nearest_descriptor, rotation_bin,
 };
 use crate::two_view::{Sim3RansacParams, sim3_ransac};
 use nalgebra::{Isometry3, Matrix6, Point3, Vector2, Vector3};
@@ -293,21 +293,14 @@ pub fn validate_from_query_depth(
     // query key point per keyframe key point, in the dominant changes of orientation.
     let mut best: BTreeMap<usize, (u32, usize)> = BTreeMap::new();
     for qi in (0..q.m.len()).filter(|&i| q.m.depth[i] > 0.0) {
-        let (mut b1, mut b2, mut bj) = (u32::MAX, u32::MAX, usize::MAX);
-        for (j, d) in kf.descriptors.iter().enumerate() {
-            let h = hamming(&q.m.descriptors[qi], d);
-            if h < b1 {
-                (b2, b1, bj) = (b1, h, j);
-            } else if h < b2 {
-                b2 = h;
-            }
-        }
-        if bj == usize::MAX
-            || b1 > SEARCH_MAX_DISTANCE
-            || (b2 != u32::MAX && b1 as f64 >= SEARCH_RATIO * b2 as f64)
-        {
+        let Some((bj, b1)) = nearest_descriptor(
+            &q.m.descriptors[qi],
+            kf.descriptors.iter().enumerate(),
+            SEARCH_MAX_DISTANCE,
+            SEARCH_RATIO,
+        ) else {
             continue;
-        }
+        };
         if best.get(&bj).is_none_or(|&(h, _)| b1 < h) {
             best.insert(bj, (b1, qi));
         }
@@ -371,14 +364,16 @@ pub fn validate_from_query_depth(
             .collect();
         pose_information(geo, q.m, map, &pose, &inlier_matches)
     } else {
-        let inliers: Vec<(Vector3<f64>, Vector2<f64>, f64)> = obs
+        // The keyframe's observations inform T_kq = T_kw · T_qw⁻¹; a left perturbation ε of
+        // T_qw is one of −Ad(T_kq)·ε of T_kq.
+        let inliers: Vec<PoseObservation> = obs
             .iter()
-            .zip(&uv)
             .zip(&r.inliers)
             .filter(|(_, ok)| **ok)
-            .map(|((o, uv), _)| (o.point_w, *uv, o.info))
+            .map(|(o, _)| o.clone())
             .collect();
-        information_seen_from(geo, &kf.pose_cw, &pose, &inliers)
+        let ad = se3::adjoint(&t_kq);
+        ad.transpose() * information_of(geo, &t_kq, &inliers) * ad
     };
     let sigma = information
         .try_inverse()
@@ -405,54 +400,6 @@ pub fn validate_from_query_depth(
         information,
         ..Valid::of_query(q, map.id, matched, pose)
     }))
-}
-
-/// Information of a query camera's pose `pose_cw` (left perturbation) from a keyframe's
-/// observations (`kf_cw`) of points in the query's camera frame: (point, pixel, information)
-/// each. Central differences, scaled by the residual variance like [`pose_information`].
-fn information_seen_from(
-    geo: &ImageGeometry,
-    kf_cw: &Isometry3<f64>,
-    pose_cw: &Isometry3<f64>,
-    observations: &[(Vector3<f64>, Vector2<f64>, f64)],
-) -> Matrix6<f64> {
-    let residuals = |p: &Isometry3<f64>| -> Vec<Vector2<f64>> {
-        let kf_from_query = kf_cw * p.inverse();
-        observations
-            .iter()
-            .map(|(x, uv, _)| {
-                // Inliers lie in front of both cameras; a step of 1e-6 keeps them there.
-                let c = kf_from_query * Point3::from(*x);
-                geo.intr.project(&c.coords).unwrap_or(*uv) - uv
-            })
-            .collect()
-    };
-    let h = 1e-6;
-    let mut jac = vec![nalgebra::Matrix2x6::<f64>::zeros(); observations.len()];
-    for k in 0..6 {
-        let mut d = nalgebra::Vector6::zeros();
-        d[k] = h;
-        let plus = residuals(&se3::retract(pose_cw, &d));
-        let minus = residuals(&se3::retract(pose_cw, &-d));
-        for (j, (a, b)) in jac.iter_mut().zip(plus.iter().zip(&minus)) {
-            j.set_column(k, &((a - b) / (2.0 * h)));
-        }
-    }
-    let (mut info, mut chi2) = (Matrix6::zeros(), 0.0);
-    for ((j, e), (_, _, w)) in jac.iter().zip(&residuals(pose_cw)).zip(observations) {
-        info += j.transpose() * j * *w;
-        chi2 += w * e.norm_squared();
-    }
-    info / residual_variance(chi2, 2 * observations.len())
-}
-
-/// χ² per degree of freedom of a 6-parameter fit, at least 1 (1 with too few residuals).
-fn residual_variance(chi2: f64, dof: usize) -> f64 {
-    if dof > 6 {
-        (chi2 / (dof - 6) as f64).max(1.0)
-    } else {
-        1.0
-    }
 }
 
 /// Largest Hamming distance of a descriptor-search match (ORB-SLAM's TH_LOW).
@@ -739,10 +686,19 @@ pub fn pose_information(
     pose: &Isometry3<f64>,
     matches: &[Option<PointId>],
 ) -> Matrix6<f64> {
-    let (_, obs) = observations(m, map, matches);
+    information_of(geo, pose, &observations(m, map, matches).1)
+}
+
+/// Gauss–Newton information of `pose` (left perturbation) from `observations`, scaled by the
+/// measured residual variance (see [`pose_information`]).
+fn information_of(
+    geo: &ImageGeometry,
+    pose: &Isometry3<f64>,
+    observations: &[PoseObservation],
+) -> Matrix6<f64> {
     let mut h = Matrix6::zeros();
     let (mut chi2, mut dof) = (0.0, 0usize);
-    for o in &obs {
+    for o in observations {
         let Some(lin) = o.obs.linearize(&geo.intr, pose, &o.point_w) else {
             continue;
         };
@@ -750,7 +706,12 @@ pub fn pose_information(
         chi2 += o.info * lin.residual.norm_squared();
         dof += o.obs.dim();
     }
-    h / residual_variance(chi2, dof)
+    let variance = if dof > 6 {
+        (chi2 / (dof - 6) as f64).max(1.0)
+    } else {
+        1.0
+    };
+    h / variance
 }
 
 /// A closure pool that reached consensus.

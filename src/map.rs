@@ -1,7 +1,9 @@
 //! The local map: keyframes, map points, covisibility. Ordered containers everywhere (BTreeMap)
 //! so that iteration order, and with it every output, is deterministic.
 
-use crate::preprocess::{Descriptor, FeatureGrid, Keypoint, Measurement, hamming};
+use crate::preprocess::{
+    Descriptor, FeatureGrid, Keypoint, Measurement, hamming, nearest_descriptor,
+};
 use nalgebra::{Isometry3, Point3, Vector3, Vector6};
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, BTreeSet};
@@ -401,19 +403,14 @@ impl Map {
             if !self.points.contains_key(pid) {
                 continue;
             }
-            let d = &kf.descriptors[kp];
-            let (mut b1, mut b2, mut bi) = (u32::MAX, u32::MAX, usize::MAX);
-            for (i, md) in m.descriptors.iter().enumerate() {
-                let h = hamming(d, md);
-                if h < b1 {
-                    (b2, b1, bi) = (b1, h, i);
-                } else if h < b2 {
-                    b2 = h;
-                }
-            }
-            if bi == usize::MAX || b1 > max_distance || b1 as f64 >= ratio * b2 as f64 {
+            let Some((bi, b1)) = nearest_descriptor(
+                &kf.descriptors[kp],
+                m.descriptors.iter().enumerate(),
+                max_distance,
+                ratio,
+            ) else {
                 continue;
-            }
+            };
             if best[bi].is_none_or(|(h, _, _)| b1 < h) {
                 best[bi] = Some((b1, *pid, kp));
             }

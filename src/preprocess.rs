@@ -17,6 +17,27 @@ use opencv::prelude::*;
 /// A 256-bit ORB descriptor.
 pub type Descriptor = [u8; 32];
 
+/// The nearest of `candidates` (index, descriptor) to `d`: its index and distance, when it is
+/// within `max_distance` and nearer than `ratio` times the second nearest (Lowe's test; passed
+/// when there is no second).
+pub fn nearest_descriptor<'a>(
+    d: &Descriptor,
+    candidates: impl IntoIterator<Item = (usize, &'a Descriptor)>,
+    max_distance: u32,
+    ratio: f64,
+) -> Option<(usize, u32)> {
+    let (mut b1, mut b2, mut bi) = (u32::MAX, u32::MAX, usize::MAX);
+    for (i, c) in candidates {
+        let h = hamming(d, c);
+        if h < b1 {
+            (b2, b1, bi) = (b1, h, i);
+        } else if h < b2 {
+            b2 = h;
+        }
+    }
+    (bi != usize::MAX && b1 <= max_distance && (b1 as f64) < ratio * b2 as f64).then_some((bi, b1))
+}
+
 /// Hamming distance between two ORB descriptors.
 #[inline]
 pub fn hamming(a: &Descriptor, b: &Descriptor) -> u32 {
