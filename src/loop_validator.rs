@@ -370,7 +370,7 @@ pub fn validate_from_query_depth(
             .iter()
             .zip(&r.inliers)
             .filter(|(_, ok)| **ok)
-            .map(|(o, _)| o.clone())
+            .map(|(o, _)| *o)
             .collect();
         let ad = se3::adjoint(&t_kq);
         ad.transpose() * information_of(geo, &t_kq, &inliers) * ad
