@@ -809,10 +809,13 @@ impl Pool {
             .retain(|o| frame.saturating_sub(o.frame) <= window && o.query_map == v.query_map);
         let a = v.alignment();
         self.recent.push_back(v);
+        let last = self.recent.back().expect("just pushed");
+        // Evidence of one kind only: a reversed validation (`own_points`, a few times less
+        // precise) does not complete a pool of the validator's usual ones, nor they its.
         let agreeing: Vec<&Valid> = self
             .recent
             .iter()
-            .filter(|o| o.match_map == self.recent.back().expect("just pushed").match_map)
+            .filter(|o| o.match_map == last.match_map && o.own_points == last.own_points)
             .filter(|o| agreement.agree(&o.alignment(), &a))
             .collect();
         let frames: BTreeSet<usize> = agreeing.iter().map(|o| o.frame).collect();
@@ -913,6 +916,36 @@ mod tests {
         assert_eq!(acc.members.len(), 3);
         assert!(agreement().agree(&acc.alignment, &Sim3::from_isometry(&a)));
         assert_eq!(pool.pending(), 0);
+    }
+
+    /// Small `aliasing` 2×5 s with `lost_place_from_query_depth`: a reversed validation (56
+    /// inliers, loose) and two of the validator's usual ones agreed, the pool completed a frame
+    /// earlier on the mixed evidence, and room B's map was later merged into room A's (3 wrong).
+    /// A pool is of one kind of evidence.
+    #[test]
+    fn a_pool_does_not_mix_reversed_and_usual_validations() {
+        let mut pool = Pool::default();
+        let a = Isometry3::new(Vector3::new(1.0, 2.0, 0.0), Vector3::new(0.0, 0.0, 0.5));
+        let reversed = |f| Valid {
+            own_points: true,
+            ..valid(f, a)
+        };
+        assert!(pool.offer(reversed(10), 30, 3, &agreement()).is_none());
+        assert!(pool.offer(valid(11, a), 30, 3, &agreement()).is_none());
+        assert!(
+            pool.offer(valid(12, a), 30, 3, &agreement()).is_none(),
+            "two usual and one reversed"
+        );
+        let acc = pool
+            .offer(valid(13, a), 30, 3, &agreement())
+            .expect("three usual ones");
+        assert!(acc.members.iter().all(|m| !m.own_points));
+        assert!(pool.offer(reversed(20), 30, 3, &agreement()).is_none());
+        assert!(pool.offer(reversed(21), 30, 3, &agreement()).is_none());
+        let acc = pool
+            .offer(reversed(22), 30, 3, &agreement())
+            .expect("three reversed ones");
+        assert!(acc.members.iter().all(|m| m.own_points));
     }
 
     #[test]
