@@ -53,7 +53,7 @@ fn write_features(seq: &Path, path: &Path) {
 fn generated_desk(dir: &Path, frames: usize) -> PathBuf {
     use homing_datasets::{scenarios, sensor::SensorOptions, writer};
     let seq = dir.join("desk");
-    writer::generate(
+    common::generate(
         &scenarios::build("desk", 1).unwrap(),
         &writer::GenOptions {
             out: seq.clone(),
@@ -62,8 +62,7 @@ fn generated_desk(dir: &Path, frames: usize) -> PathBuf {
             sensor: SensorOptions::realistic(),
             max_frames: Some(frames),
         },
-    )
-    .unwrap();
+    );
     seq
 }
 

@@ -15,8 +15,7 @@ fn ate(s: &homing::output::Summary) -> f64 {
 #[test]
 fn loop_is_closed_and_corrects_the_drift() {
     let tmp = tempfile::tempdir().unwrap();
-    let seq = tmp.path().join("loop");
-    common::synth_small("loop", &seq, None);
+    let seq = common::small("loop");
     let atlas = tmp.path().join("atlas.bin");
     let with = run(&RunOptions {
         sequence: seq.clone(),
@@ -85,8 +84,7 @@ fn aliasing_leaves_no_wrong_closure_standing() {
 #[test]
 fn revisiting_keeps_the_map_bounded() {
     let tmp = tempfile::tempdir().unwrap();
-    let seq = tmp.path().join("revisit");
-    common::synth_small("revisit", &seq, None);
+    let seq = common::small("revisit");
     let out = tmp.path().join("out");
     let s = run(&RunOptions {
         sequence: seq,
@@ -410,8 +408,7 @@ fn loop_with_and_without_depth_edges(
     with: &str,
 ) -> (homing::output::Summary, homing::output::Summary) {
     let tmp = tempfile::tempdir().unwrap();
-    let seq = tmp.path().join("loop");
-    common::synth_small("loop", &seq, None);
+    let seq = common::small("loop");
     let run_with = |name: &str, mapping: &str| {
         let config = tmp.path().join(format!("{name}.toml"));
         std::fs::write(&config, format!("[mapping]\n{mapping}\n")).unwrap();

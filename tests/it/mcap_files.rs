@@ -11,7 +11,7 @@ use homing::mcap_log::{POSE_TOPIC, STATE_TOPIC, STATS_TOPIC, TRANSITION_TOPIC};
 use homing::system::{RunOptions, run};
 use homing_datasets::scenarios;
 use homing_datasets::sensor::SensorOptions;
-use homing_datasets::writer::{GenOptions, generate};
+use homing_datasets::writer::GenOptions;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
@@ -54,7 +54,7 @@ fn bag_run_matches_folder_run_and_run_mcap_reads_back() {
     let tmp = tempfile::tempdir().unwrap();
     let sc = scenarios::build("desk", 2).unwrap();
     let seq = tmp.path().join("desk");
-    generate(
+    common::generate(
         &sc,
         &GenOptions {
             out: seq.clone(),
@@ -63,8 +63,7 @@ fn bag_run_matches_folder_run_and_run_mcap_reads_back() {
             sensor: SensorOptions::realistic(),
             max_frames: Some(60),
         },
-    )
-    .unwrap();
+    );
     let bag = tmp.path().join("desk.mcap");
     let stats = tum_to_mcap(&seq, &bag, false).unwrap();
     assert_eq!((stats.colour, stats.camera_info), (60, 60));

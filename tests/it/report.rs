@@ -1,13 +1,14 @@
 //! `homing report`: the HTML report of a run (sections, embedded PNGs that decode, nothing
 //! outside the file), and clear errors on broken run folders.
 
+use crate::common;
 use base64::Engine as _;
 use homing::io::perturb::PerturbationSpec;
 use homing::report::{results_table, write_report};
 use homing::system::{RunOptions, run};
 use homing_datasets::scenarios;
 use homing_datasets::sensor::SensorOptions;
-use homing_datasets::writer::{GenOptions, generate};
+use homing_datasets::writer::GenOptions;
 use std::path::Path;
 
 /// The embedded PNGs of a report, with the size their `<img>` tag claims.
@@ -43,7 +44,7 @@ fn embedded_pngs(html: &str) -> Vec<(Vec<u8>, u32, u32)> {
 fn report_of_a_small_synthetic_run() {
     let tmp = tempfile::tempdir().unwrap();
     let sc = scenarios::build("desk", 1).unwrap();
-    generate(
+    common::generate(
         &sc,
         &GenOptions {
             out: tmp.path().join("desk"),
@@ -52,8 +53,7 @@ fn report_of_a_small_synthetic_run() {
             sensor: SensorOptions::realistic(),
             max_frames: Some(60),
         },
-    )
-    .unwrap();
+    );
     let out = tmp.path().join("run");
     // A kidnapping, so the state timeline has more than one state.
     let summary = run(&RunOptions {

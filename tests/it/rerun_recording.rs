@@ -2,18 +2,19 @@
 //! rerun crate's own decoder and holds every entity the visualiser promises; without it, asking
 //! for rerun is a clear error. CI runs this file once with `--features rerun`.
 
+use crate::common;
 use homing::io::perturb::PerturbationSpec;
 use homing::system::{RunOptions, run};
 use homing::viz::RerunTarget;
 use homing_datasets::scenarios;
 use homing_datasets::sensor::SensorOptions;
-use homing_datasets::writer::{GenOptions, generate};
+use homing_datasets::writer::GenOptions;
 use std::path::Path;
 
 /// 80 small desk frames with a kidnapping (frames 30–44 dropped), so there are two maps.
 fn sequence(dir: &Path) {
     let sc = scenarios::build("desk", 1).unwrap();
-    generate(
+    common::generate(
         &sc,
         &GenOptions {
             out: dir.to_path_buf(),
@@ -22,8 +23,7 @@ fn sequence(dir: &Path) {
             sensor: SensorOptions::realistic(),
             max_frames: Some(80),
         },
-    )
-    .unwrap();
+    );
 }
 
 fn options(seq: &Path, out: &Path, rrd: &Path) -> RunOptions {

@@ -12,8 +12,7 @@ use homing::system::{RunOptions, run};
 #[test]
 fn desk_small_mono_initializes_tracks_and_is_accurate() {
     let tmp = tempfile::tempdir().unwrap();
-    let seq = tmp.path().join("desk");
-    common::synth_small("desk", &seq, None);
+    let seq = common::small("desk");
     let out = tmp.path().join("run");
     let summary = run(&RunOptions {
         sequence: seq,
@@ -60,8 +59,7 @@ fn desk_small_mono_kidnapping_is_merged_back_in_sim3() {
     use homing::atlas::{Atlas, AtlasCamera, PoolKind};
     use homing::geometry::Sim3;
     let tmp = tempfile::tempdir().unwrap();
-    let seq = tmp.path().join("desk");
-    common::synth_small("desk", &seq, None);
+    let seq = common::small("desk");
     let atlas = tmp.path().join("atlas.bin");
     let summary = run(&RunOptions {
         sequence: seq,

@@ -7,23 +7,14 @@ use crate::common;
 use homing::system::{RunOptions, run};
 use homing_datasets::scenarios;
 use homing_datasets::sensor::SensorOptions;
-use homing_datasets::writer::{GenOptions, generate};
+use homing_datasets::writer::GenOptions;
 
 #[test]
 fn desk_small_tracks_every_frame() {
     let tmp = tempfile::tempdir().unwrap();
-    let sc = scenarios::build("desk", 1).unwrap();
-    let opts = GenOptions {
-        out: tmp.path().join("desk"),
-        small: true,
-        seed: 1,
-        sensor: SensorOptions::realistic(),
-        max_frames: None,
-    };
-    generate(&sc, &opts).unwrap();
     let out = tmp.path().join("run");
     let summary = run(&RunOptions {
-        sequence: tmp.path().join("desk"),
+        sequence: common::small("desk"),
         out: out.clone(),
         eval: true,
         ..Default::default()
@@ -75,7 +66,7 @@ fn two_runs_are_byte_identical() {
         sensor: SensorOptions::realistic(),
         max_frames: Some(60),
     };
-    generate(&sc, &opts).unwrap();
+    common::generate(&sc, &opts);
     let mut outputs = Vec::new();
     for k in 0..2 {
         let out = tmp.path().join(format!("run{k}"));

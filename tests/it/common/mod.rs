@@ -86,6 +86,22 @@ pub fn assert_clear_error(ok: bool, stderr: &str, needle: &str) {
     );
 }
 
+/// [`homing_datasets::writer::generate`] on a thread pool of its own. The generator renders on
+/// rayon; in the global pool, the case study's long generation (about 4,000 frames) kept every
+/// other test's generation waiting behind it (one test took 289 s instead of 4).
+pub fn generate(
+    sc: &homing_datasets::scenarios::Scenario,
+    opts: &homing_datasets::writer::GenOptions,
+) -> homing_datasets::writer::Stats {
+    let threads = std::thread::available_parallelism().map_or(2, |n| n.get());
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap()
+        .install(|| homing_datasets::writer::generate(sc, opts))
+        .unwrap()
+}
+
 /// Generates synthetic scenario `name` (seed 1, realistic sensor) at full size (640×480,
 /// every frame).
 pub fn synth_full(name: &str, dir: &Path) {
@@ -98,37 +114,73 @@ pub fn synth_full(name: &str, dir: &Path) {
         sensor: SensorOptions::realistic(),
         max_frames: None,
     };
-    writer::generate(&sc, &opts).unwrap();
+    generate(&sc, &opts);
 }
 
-/// Generates synthetic scenario `name` (seed 1, realistic sensor) at 320×240, keeping every
-/// `stride`-th frame (`None`: the scenario's own `--small` stride).
-pub fn synth_small(name: &str, dir: &Path, stride: Option<usize>) {
+/// Synthetic scenario `name` (seed 1, realistic sensor) at its small size (320×240, the
+/// scenario's own stride), generated once per test process and shared by every test that runs
+/// on it: runs only read a sequence, and generating `loop` or `aliasing` costs 15–19 s of CPU
+/// each time (twenty generations were about a fifth of the suite's CPU time).
+pub fn small(name: &str) -> PathBuf {
     use homing_datasets::{scenarios, sensor::SensorOptions, writer};
-    let mut sc = scenarios::build(name, 1).unwrap();
-    if let Some(s) = stride {
-        sc.small_stride = s;
-    }
-    let opts = writer::GenOptions {
-        out: dir.to_path_buf(),
-        small: true,
-        seed: 1,
-        sensor: SensorOptions::realistic(),
-        max_frames: None,
-    };
-    writer::generate(&sc, &opts).unwrap();
+    use std::collections::BTreeMap;
+    use std::sync::{Arc, Mutex, OnceLock};
+    static CACHE: Mutex<BTreeMap<String, Arc<OnceLock<PathBuf>>>> = Mutex::new(BTreeMap::new());
+    let cell = CACHE
+        .lock()
+        .unwrap()
+        .entry(name.to_string())
+        .or_default()
+        .clone();
+    cell.get_or_init(|| {
+        let dir = sequences_root().join(name);
+        let opts = writer::GenOptions {
+            out: dir.clone(),
+            small: true,
+            seed: 1,
+            sensor: SensorOptions::realistic(),
+            max_frames: None,
+        };
+        generate(&scenarios::build(name, 1).unwrap(), &opts);
+        dir
+    })
+    .clone()
+}
+
+/// This process's folder for [`small`]'s sequences, under cargo's scratch folder for
+/// integration tests. Folders left by earlier test processes that are no longer running
+/// (Linux: no /proc/PID) are removed first, so at most the last run's sequences stay.
+fn sequences_root() -> &'static Path {
+    static ROOT: std::sync::OnceLock<PathBuf> = std::sync::OnceLock::new();
+    ROOT.get_or_init(|| {
+        let base = Path::new(env!("CARGO_TARGET_TMPDIR")).join("it-sequences");
+        for entry in std::fs::read_dir(&base).into_iter().flatten().flatten() {
+            let running = entry
+                .file_name()
+                .to_str()
+                .and_then(|p| p.parse::<u32>().ok())
+                .is_some_and(|pid| Path::new("/proc").join(pid.to_string()).exists());
+            if !running {
+                let _ = std::fs::remove_dir_all(entry.path());
+            }
+        }
+        let root = base.join(std::process::id().to_string());
+        let _ = std::fs::remove_dir_all(&root);
+        std::fs::create_dir_all(&root).unwrap();
+        root
+    })
 }
 
 /// A run (with evaluation) of synthetic scenario `name` at its small size, under `perturb`.
 pub struct SmallRun {
-    /// Keeps the sequence and outputs alive.
+    /// Keeps the outputs alive.
     pub tmp: tempfile::TempDir,
     pub seq: PathBuf,
     pub out: PathBuf,
     pub summary: homing::output::Summary,
 }
 
-/// Generates scenario `name` small ([`synth_small`]) and runs it under `perturb`, with evaluation.
+/// Scenario `name` small ([`small`]) run under `perturb`, with evaluation.
 pub fn run_small(name: &str, perturb: homing::io::perturb::PerturbationSpec) -> SmallRun {
     run_small_with_config(name, perturb, None)
 }
@@ -140,8 +192,7 @@ pub fn run_small_with_config(
     config: Option<&str>,
 ) -> SmallRun {
     let tmp = tempfile::tempdir().unwrap();
-    let seq = tmp.path().join(name);
-    synth_small(name, &seq, None);
+    let seq = small(name);
     let out = tmp.path().join("run");
     let config = config.map(|text| {
         let path = tmp.path().join("config.toml");
