@@ -178,6 +178,11 @@ pub struct MappingConfig {
     /// ... and also pairs without three wide planes, registered on local planes alone. Off:
     /// on real depth of a desk scene it made wrong edges (see the module's doc).
     pub final_depth_edges_local_planes: bool,
+    /// RGB-D: also triangulate the new keyframe's unmatched key points with those of its
+    /// covisible keyframes, as ORB-SLAM2's `CreateNewMapPoints` does for RGB-D, so the map
+    /// holds points where the sensor has no depth (far walls, a room seen through its door).
+    /// Pairs closer than the virtual baseline are skipped (ORB-SLAM2's rule).
+    pub triangulate_points: bool,
 }
 
 impl Default for MappingConfig {
@@ -193,6 +198,7 @@ impl Default for MappingConfig {
             final_ba_frame_interval_s: 0.2,
             final_depth_edges: true,
             final_depth_edges_local_planes: false,
+            triangulate_points: false,
         }
     }
 }
@@ -372,6 +378,14 @@ pub struct ControllerConfig {
     /// the tracker might still find a pose; a new map is started and the Relocalize region
     /// must validate the place before the maps are joined.
     pub reacquire_gap_s: f64,
+    /// Merge check by appearance (with depth): a merge is refused when a keyframe of the
+    /// query map, placed by the pool's alignment, confirms by its depth readings at least
+    /// `min_merge_appearance_points` of the matched map's points (their surface is there, in
+    /// view, not occluded) but finds fewer than this share of them by descriptor. A copy of
+    /// the place with the same shape and other texture (the corridor beyond a look-alike
+    /// room's door) passes the depth check and fails this one. 0 = off.
+    pub min_merge_appearance: f64,
+    pub min_merge_appearance_points: u32,
 }
 
 impl Default for ControllerConfig {
@@ -389,6 +403,8 @@ impl Default for ControllerConfig {
             min_localized_inliers: 100,
             left_after_frames: 3,
             reacquire_gap_s: 0.5,
+            min_merge_appearance: 0.1,
+            min_merge_appearance_points: 50,
         }
     }
 }
@@ -752,6 +768,18 @@ impl Config {
             k.max_contradiction,
             0.0,
             1.0,
+        );
+        c.range(
+            "controller.min_merge_appearance",
+            k.min_merge_appearance,
+            0.0,
+            1.0,
+        );
+        c.range(
+            "controller.min_merge_appearance_points",
+            k.min_merge_appearance_points as f64,
+            1.0,
+            1e9,
         );
         c.range(
             "controller.min_localized_inliers",

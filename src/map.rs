@@ -195,6 +195,15 @@ impl Map {
         id
     }
 
+    /// Whether some keyframe measured the point's depth: a point triangulated from rays a few
+    /// degrees apart (`mapping.triangulate_points`) is uncertain along its ray by more than a
+    /// depth check's tolerance, so depth checks judge only points measured by depth.
+    pub fn depth_measured(&self, p: &MapPoint) -> bool {
+        p.observations
+            .iter()
+            .any(|(k, &i)| self.keyframes.get(k).is_some_and(|k| k.depth[i] > 0.0))
+    }
+
     /// Adds an observation of an existing point.
     /// ORB-SLAM's observation count: an observation with depth counts twice (it constrains the
     /// point like a stereo pair), one without once.

@@ -22,6 +22,8 @@ use std::collections::{BTreeMap, BTreeSet};
 const MONO_KEYFRAME_TRACKED_RATIO: f64 = 0.9;
 /// Monocular triangulation: covisible keyframes paired with a new keyframe (ORB-SLAM: 20).
 const TRIANGULATION_NEIGHBOURS: usize = 20;
+/// RGB-D triangulation: covisible keyframes paired with a new keyframe (ORB-SLAM2: 10).
+const TRIANGULATION_NEIGHBOURS_RGBD: usize = 10;
 /// Largest Hamming distance of a triangulation match (ORB-SLAM's TH_LOW).
 const TRIANGULATION_MAX_DISTANCE: u32 = 50;
 /// Best/second-best ratio of a triangulation match. ORB-SLAM restricts the candidates to the
@@ -337,7 +339,7 @@ impl MapMerger {
         }
         map.update_covisibility(kf);
         report.culled = self.cull(map, kf);
-        if self.mono {
+        if self.mono || self.cfg.triangulate_points {
             report.new_points += self.create_new_points(map, kf);
             map.update_covisibility(kf);
         }
@@ -375,9 +377,10 @@ impl MapMerger {
         culled
     }
 
-    /// Monocular: new map points by triangulating the unmatched keypoints of the new keyframe
-    /// `kf` with those of its best covisible keyframes (ORB-SLAM's `CreateNewMapPoints`).
-    /// Without depth this is the only source of points. A pair of keypoints is matched by
+    /// New map points by triangulating the unmatched keypoints of the new keyframe `kf` with
+    /// those of its best covisible keyframes (ORB-SLAM's `CreateNewMapPoints`). Without depth
+    /// this is the only source of points; with depth (`mapping.triangulate_points`) it adds
+    /// the points the sensor has no depth for. A pair of keypoints is matched by
     /// descriptor among the candidates near the epipolar line, and the point is kept only if
     /// the rays have parallax, it lies in front of both cameras, reprojects within the χ²
     /// gate in both, and its distances to the two cameras agree with the keypoints' pyramid
@@ -385,17 +388,28 @@ impl MapMerger {
     fn create_new_points(&mut self, map: &mut Map, kf: KfId) -> usize {
         let (sf, nl) = (self.geo.scale_factor, self.geo.n_levels);
         let intr = self.geo.intr;
-        let neighbours = map.keyframes[&kf].best_covisible(TRIANGULATION_NEIGHBOURS);
+        let n_neighbours = if self.mono {
+            TRIANGULATION_NEIGHBOURS
+        } else {
+            TRIANGULATION_NEIGHBOURS_RGBD
+        };
+        let neighbours = map.keyframes[&kf].best_covisible(n_neighbours);
         let mut created = 0;
         for n in neighbours {
             let (k1, k2) = (&map.keyframes[&kf], &map.keyframes[&n]);
             let (pose1, pose2) = (k1.pose_cw, k2.pose_cw);
             let (o1, o2) = (k1.center(), k2.center());
-            // A baseline that is tiny relative to the scene gives no depth (ORB-SLAM: 1 %).
-            let Some(median) = median_depth(map, k2) else {
-                continue;
-            };
-            if (o1 - o2).norm() / median < 0.01 {
+            if self.mono {
+                // A baseline that is tiny relative to the scene gives no depth (ORB-SLAM: 1 %).
+                let Some(median) = median_depth(map, k2) else {
+                    continue;
+                };
+                if (o1 - o2).norm() / median < 0.01 {
+                    continue;
+                }
+            } else if (o1 - o2).norm() < intr.bf / intr.fx {
+                // RGB-D: a baseline shorter than the virtual stereo baseline adds nothing the
+                // depth does not give (ORB-SLAM2's rule).
                 continue;
             }
             let pairs = match_for_triangulation(&self.geo, k1, k2);

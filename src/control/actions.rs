@@ -897,6 +897,30 @@ impl StateMachine {
                 acc.match_map
             )));
         }
+        if c.min_merge_appearance > 0.0 {
+            let seen = global_optimizer::merge_appearance_check(&self.geo, into, from, &alignment);
+            tracing::debug!(
+                "frame {}: merge appearance check map {} -> {} (keyframe, confirmed, found): {seen:?}",
+                m.frame,
+                acc.query_map,
+                acc.match_map
+            );
+            let worst = seen
+                .iter()
+                .filter(|(_, confirmed, _)| *confirmed >= c.min_merge_appearance_points as usize)
+                .map(|&(kf, confirmed, found)| (found as f64 / confirmed as f64, kf))
+                .min_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+            if let Some((share, kf)) = worst
+                && share < c.min_merge_appearance
+            {
+                return Some(Some(format!(
+                    "is contradicted by keyframe {kf}: it confirms map {}'s surfaces by depth \
+                     but finds only {:.0} % of their points by appearance",
+                    acc.match_map,
+                    100.0 * share
+                )));
+            }
+        }
         Some(None)
     }
 
