@@ -378,9 +378,8 @@ fn found_by_appearance<'a>(
         if dist < p.min_distance || dist > p.max_distance {
             continue;
         }
-        let tol = depth_tolerance(pc.z);
         let depths = depths_near(&kf.grid, &kf.keypoints, &kf.depth, uv.x, uv.y);
-        if !depths.iter().any(|d| (d - pc.z).abs() <= tol) {
+        if !depth_confirms(&depths, pc.z) {
             continue;
         }
         confirmed += 1;
@@ -479,8 +478,7 @@ fn seen_through<'a>(
         }
         judged += 1;
         let tol = depth_tolerance(pc.z);
-        if !depths.iter().any(|d| (d - pc.z).abs() <= tol) && depths.iter().all(|d| *d > pc.z + tol)
-        {
+        if !depth_confirms(&depths, pc.z) && depths.iter().all(|d| *d > pc.z + tol) {
             contradicted += 1;
         }
     }
@@ -491,6 +489,13 @@ fn seen_through<'a>(
 /// of keypoints around a projected point near depth edges.
 fn depth_tolerance(z: f64) -> f64 {
     0.05 + 0.08 * z
+}
+
+/// Whether one of the depth readings near a point's projection is at its depth `z`
+/// (within [`depth_tolerance`]): the surface is there and nothing hides it.
+fn depth_confirms(depths: &[f64], z: f64) -> bool {
+    let tol = depth_tolerance(z);
+    depths.iter().any(|d| (d - z).abs() <= tol)
 }
 
 /// Image radius (pixels) searched around a projected point for keypoints with depth.
@@ -533,7 +538,7 @@ pub fn expectation(
             continue;
         }
         let tol = depth_tolerance(pc.z);
-        if depths.iter().any(|d| (d - pc.z).abs() <= tol) {
+        if depth_confirms(&depths, pc.z) {
             depth_confirmed += 1;
         } else if depths.iter().all(|d| *d > pc.z + tol) {
             depth_contradicted += 1;

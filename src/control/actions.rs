@@ -883,10 +883,7 @@ impl StateMachine {
             acc.query_map,
             acc.match_map
         );
-        let worst = through
-            .iter()
-            .filter(|(_, judged, _)| *judged >= c.min_expected_cells as usize)
-            .map(|&(kf, judged, n)| (n as f64 / judged as f64, kf))
+        let worst = keyframe_shares(&through, c.min_expected_cells as usize)
             .max_by(|a, b| a.0.total_cmp(&b.0).then(b.1.cmp(&a.1)));
         if let Some((share, kf)) = worst
             && share > c.max_contradiction
@@ -905,10 +902,7 @@ impl StateMachine {
                 acc.query_map,
                 acc.match_map
             );
-            let worst = seen
-                .iter()
-                .filter(|(_, confirmed, _)| *confirmed >= c.min_merge_appearance_points as usize)
-                .map(|&(kf, confirmed, found)| (found as f64 / confirmed as f64, kf))
+            let worst = keyframe_shares(&seen, c.min_merge_appearance_points as usize)
                 .min_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
             if let Some((share, kf)) = worst
                 && share < c.min_merge_appearance
@@ -1914,6 +1908,17 @@ fn localized_inlier_floor(mono: bool, min_inliers: usize, peak: usize) -> usize 
     } else {
         min_inliers
     }
+}
+
+/// Per-keyframe results of a merge check, (keyframe, points judged, points counted), as
+/// (share counted, keyframe) for the keyframes that judged at least `min_judged` points.
+fn keyframe_shares(
+    rows: &[(KfId, usize, usize)],
+    min_judged: usize,
+) -> impl Iterator<Item = (f64, KfId)> + '_ {
+    rows.iter()
+        .filter(move |(_, judged, _)| *judged >= min_judged)
+        .map(|&(kf, judged, n)| (n as f64 / judged as f64, kf))
 }
 
 #[cfg(test)]
