@@ -71,13 +71,21 @@ pub fn closure_information(cfg: &LoopClosingConfig, info: &Matrix6<f64>) -> Matr
 pub fn essential_edges(map: &Map, min_covisibility: u32) -> BTreeSet<(KfId, KfId)> {
     let mut pairs = BTreeSet::new();
     for (id, kf) in &map.keyframes {
-        // Spanning tree: the strongest covisible older keyframe (ties: the newest of them).
+        // Spanning tree: the strongest covisible older keyframe (ties: the newest of them);
+        // where culling has removed every point shared with older keyframes, the keyframe it
+        // was tracked against. Without that link the keyframes made since hang on nothing,
+        // and a closure there moves them anywhere at no cost: a look-alike loop 166° off
+        // passed as consistent (small `aliasing`, 5 % noise frames, with Localized left
+        // sooner).
         let parent = kf
             .covisibility
             .iter()
             .filter(|(o, _)| **o < *id && map.keyframes.contains_key(o))
             .max_by_key(|(o, w)| (**w, **o))
-            .map(|(o, _)| *o);
+            .map(|(o, _)| *o)
+            .or(kf
+                .parent
+                .filter(|p| *p < *id && map.keyframes.contains_key(p)));
         if let Some(p) = parent {
             pairs.insert((p, *id));
         }
@@ -615,6 +623,59 @@ mod tests {
             map.add_point(kf, i, p, 1.2, 8);
         }
         kf
+    }
+
+    /// Three keyframes 1 m apart along x; the first two share points, the third shares none
+    /// with them (culling removed them) and was tracked against the second (`parent`).
+    fn chain_with_detached_keyframe(parent: Option<KfId>) -> (Map, [KfId; 3]) {
+        let geo = ImageGeometry::new(Intrinsics::TUM_FREIBURG1, 640, 480, 1.2, 8);
+        let mut map = Map::new(0);
+        let a = add_wall_keyframe(&mut map, &geo, 0, 3.0);
+        let m = wall_view(1, 3.0, 0);
+        let b = map.add_keyframe(&m, Isometry3::translation(-1.0, 0.0, 0.0));
+        let points: Vec<PointId> = map.keyframes[&a].points.iter().flatten().copied().collect();
+        for (i, p) in points.into_iter().enumerate() {
+            map.observe(b, i, p);
+        }
+        map.update_covisibility(b);
+        let c = map.add_keyframe(&wall_view(2, 3.0, 0), Isometry3::translation(-2.0, 0.0, 0.0));
+        map.keyframes.get_mut(&c).expect("added").parent = parent;
+        (map, [a, b, c])
+    }
+
+    #[test]
+    fn a_keyframe_sharing_no_points_stays_tied_to_the_keyframe_it_was_tracked_against() {
+        let (map, [a, b, c]) = chain_with_detached_keyframe(Some(1));
+        assert_eq!(b, 1);
+        let edges = essential_edges(&map, 100);
+        assert!(edges.contains(&(a, b)), "covisible pair: {edges:?}");
+        assert!(edges.contains(&(b, c)), "tracking chain kept: {edges:?}");
+        let (map, _) = chain_with_detached_keyframe(None);
+        assert!(
+            !essential_edges(&map, 100).iter().any(|e| e.1 == c),
+            "no parent, no covisibility: nothing ties it"
+        );
+    }
+
+    #[test]
+    fn a_loop_that_would_turn_a_detached_keyframe_around_is_inconsistent() {
+        // The loop says keyframe c is back at a's place, turned 166°: with c tied to b by the
+        // tracking chain that bends the map and the optimiser flags it; untied, c just moves.
+        let cfg = LoopClosingConfig::default();
+        let z = Sim3::from_isometry(&Isometry3::new(
+            Vector3::new(0.3, 0.0, 0.2),
+            Vector3::y() * 166f64.to_radians(),
+        ));
+        let info = Matrix6::identity() * 1e4;
+        let run = |parent| {
+            let (mut map, [a, _, c]) = chain_with_detached_keyframe(parent);
+            let edge = ClosureEdge::new(0, c, a, &z, (1.0, 1.0), info);
+            optimize_map(&cfg, &mut map, &[edge], &[a], false)
+        };
+        let tied = run(Some(1));
+        assert!(!tied.consistent, "{tied:?}");
+        let untied = run(None);
+        assert!(untied.consistent, "{untied:?}");
     }
 
     #[test]

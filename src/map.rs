@@ -48,6 +48,11 @@ pub struct Keyframe {
     pub points: Vec<Option<PointId>>,
     /// Covisible keyframe → number of shared map points.
     pub covisibility: BTreeMap<KfId, u32>,
+    /// The keyframe this one's frame was tracked against when it was made: its link in the
+    /// tracking chain, which the essential graph keeps after culling has removed every point
+    /// the two shared (see `global_optimizer::essential_edges`). `None` for a map's first.
+    #[serde(default)]
+    pub parent: Option<KfId>,
     /// How much lengths in this keyframe's camera frame have been rescaled since it was made
     /// (monocular: Sim3 merges and pose graphs change a map's scale locally; 1 with depth).
     /// Frame poses and closure measurements kept relative to the keyframe are stored in its
@@ -73,6 +78,7 @@ impl Keyframe {
             grid: m.grid.clone(),
             points: vec![None; m.keypoints.len()],
             covisibility: BTreeMap::new(),
+            parent: None,
             units: 1.0,
             surface: m.surface.clone(),
         }

@@ -302,7 +302,9 @@ impl MapMerger {
         track: &TrackResult,
     ) -> MergeReport {
         let kf = map.add_keyframe(m, track.pose_cw);
-        map.keyframes.get_mut(&kf).expect("just added").twist = track.twist;
+        let k = map.keyframes.get_mut(&kf).expect("just added");
+        k.twist = track.twist;
+        k.parent = track.reference_kf;
         let mut report = MergeReport {
             keyframe: kf,
             ..Default::default()
