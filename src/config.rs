@@ -365,9 +365,19 @@ pub struct ControllerConfig {
     /// ... and no keyframe of the map has a similar viewpoint: a centre within this distance
     /// and an optical axis within `known_view_angle_deg`. The viewpoint test keeps the number
     /// of keyframes bounded by the area explored: where a keyframe already looks, a thinly
-    /// mapped view is a sparse map, not an unknown place.
+    /// mapped view is a sparse map, not an unknown place. 20° (a third of the field of view)
+    /// and a 0.7 coverage floor: frames tracked while the map's points drift out of view
+    /// slip by millimetres on few inliers, so mapping resumes before that (`desk` after a
+    /// drop, see docs/robustness-notes.md).
     pub known_view_distance_m: f64,
     pub known_view_angle_deg: f64,
+    /// Mapping looks for a known place on frames that are not keyframes only where the map
+    /// predicts points in at least this share of the cells holding key points (Localized would
+    /// be left at once otherwise). Lower than `min_known_coverage`: a loop recognised where the
+    /// map covers half the view corrects the drift before the next keyframe is judged against
+    /// the map (small `revisit`, three 5 s drops: with 0.7 here too, the loop at frame 127 was
+    /// not found and the next keyframe saw through a third of the map).
+    pub min_recognize_coverage: f64,
     /// ... or, at once and off the keyframes' viewpoints, when the tracker keeps fewer inliers
     /// than this (the map no longer holds it well: mapping must resume before tracking fails).
     pub min_localized_inliers: u32,
@@ -397,9 +407,10 @@ impl Default for ControllerConfig {
             corrupted_after_frames: 5,
             keyframes_contradicting: 1,
             min_expected_cells: 30,
-            min_known_coverage: 0.5,
+            min_known_coverage: 0.7,
+            min_recognize_coverage: 0.5,
             known_view_distance_m: 0.5,
-            known_view_angle_deg: 30.0,
+            known_view_angle_deg: 20.0,
             min_localized_inliers: 100,
             left_after_frames: 3,
             reacquire_gap_s: 0.5,
@@ -748,6 +759,12 @@ impl Config {
         c.range(
             "controller.min_known_coverage",
             k.min_known_coverage,
+            0.0,
+            1.0,
+        );
+        c.range(
+            "controller.min_recognize_coverage",
+            k.min_recognize_coverage,
             0.0,
             1.0,
         );

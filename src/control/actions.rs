@@ -365,7 +365,7 @@ impl StateMachine {
             // Only where the map covers the view: Localized would be left at once otherwise.
             let map = &self.atlas.maps[&cur];
             let e = self.expectation(map, m, &track);
-            if e.coverage() >= self.cfg.controller.min_known_coverage {
+            if e.coverage() >= self.cfg.controller.min_recognize_coverage {
                 timing.time("recognize", || self.recognize_known(m, &track));
             }
         }
