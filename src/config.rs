@@ -359,6 +359,13 @@ pub struct ControllerConfig {
     /// The expectation check needs at least this many image cells (20 px) where the map
     /// predicts points to judge.
     pub min_expected_cells: u32,
+    /// Mapping looks for a known place on frames that are not keyframes only where the map
+    /// predicts points in at least this share of the cells holding key points (Localized would
+    /// be left at once otherwise). Lower than `min_known_coverage`: a loop recognised where the
+    /// map covers half the view corrects the drift before the next keyframe is judged against
+    /// the map (small `revisit`, three 5 s drops: with 0.7 here too, the loop at frame 127 was
+    /// not found and the next keyframe saw through a third of the map).
+    pub min_recognize_coverage: f64,
     /// Localized is left for Core when, for `left_after_frames` frames running, less than this
     /// share of the image cells holding keypoints are cells where the map predicts points ...
     pub min_known_coverage: f64,
@@ -371,13 +378,6 @@ pub struct ControllerConfig {
     /// drop, see docs/robustness-notes.md).
     pub known_view_distance_m: f64,
     pub known_view_angle_deg: f64,
-    /// Mapping looks for a known place on frames that are not keyframes only where the map
-    /// predicts points in at least this share of the cells holding key points (Localized would
-    /// be left at once otherwise). Lower than `min_known_coverage`: a loop recognised where the
-    /// map covers half the view corrects the drift before the next keyframe is judged against
-    /// the map (small `revisit`, three 5 s drops: with 0.7 here too, the loop at frame 127 was
-    /// not found and the next keyframe saw through a third of the map).
-    pub min_recognize_coverage: f64,
     /// ... or, at once and off the keyframes' viewpoints, when the tracker keeps fewer inliers
     /// than this (the map no longer holds it well: mapping must resume before tracking fails).
     pub min_localized_inliers: u32,
@@ -407,8 +407,8 @@ impl Default for ControllerConfig {
             corrupted_after_frames: 5,
             keyframes_contradicting: 1,
             min_expected_cells: 30,
-            min_known_coverage: 0.7,
             min_recognize_coverage: 0.5,
+            min_known_coverage: 0.7,
             known_view_distance_m: 0.5,
             known_view_angle_deg: 20.0,
             min_localized_inliers: 100,

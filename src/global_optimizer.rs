@@ -638,7 +638,10 @@ mod tests {
             map.observe(b, i, p);
         }
         map.update_covisibility(b);
-        let c = map.add_keyframe(&wall_view(2, 3.0, 0), Isometry3::translation(-2.0, 0.0, 0.0));
+        let c = map.add_keyframe(
+            &wall_view(2, 3.0, 0),
+            Isometry3::translation(-2.0, 0.0, 0.0),
+        );
         map.keyframes.get_mut(&c).expect("added").parent = parent;
         (map, [a, b, c])
     }

@@ -147,8 +147,14 @@ fn revisiting_keeps_the_map_bounded() {
 /// contradiction between the loop's two ends. Before, the lap stayed open: ATE 11 cm.
 #[test]
 fn a_kidnapping_before_the_loop_closes_leaves_no_open_loop() {
+    revisit_ends_in_one_right_map(&["8.733s:11.733s"], 0.05);
+}
+
+/// Small `revisit` with frames dropped at `drops`: one map, no pool rolled back, no wrong
+/// closure, ATE under `max_ate_m`.
+fn revisit_ends_in_one_right_map(drops: &[&str], max_ate_m: f64) {
     let perturb = homing::io::perturb::PerturbationSpec {
-        drops: vec!["8.733s:11.733s".parse().unwrap()],
+        drops: drops.iter().map(|d| d.parse().unwrap()).collect(),
         ..Default::default()
     };
     let s = common::run_small("revisit", perturb).summary;
@@ -156,31 +162,18 @@ fn a_kidnapping_before_the_loop_closes_leaves_no_open_loop() {
     assert_eq!(s.pools_rolled_back, 0, "a right merge was rolled back");
     let ev = s.evaluation.as_ref().unwrap();
     assert_eq!(ev["closures"]["accepted_wrong"].as_u64().unwrap(), 0);
-    assert!(ate(&s) < 0.05, "ATE {} m", ate(&s));
+    assert!(ate(&s) < max_ate_m, "ATE {} m", ate(&s));
 }
 
 /// The benchmark's three 5 s drops in small `revisit`. After the first merge, Localized is left
 /// as the camera turns off the map (under 70 % of the view covered); a frame whose view the map
 /// covers between half and 70 % then recognises the first lap's start and closes the loop
-/// (frame 127). When looking for known places
-/// was held to the same 70 %, that loop was never found, the next keyframe saw through a third
-/// of the drifted map, and two right merges were undone (4 maps, 46 % in the largest, 8.1 cm).
+/// (frame 127). When looking for known places was held to the same 70 %, that loop was never
+/// found, the next keyframe saw through a third of the drifted map, and two right merges were
+/// undone (4 maps, 46 % in the largest, 8.1 cm).
 #[test]
 fn a_loop_is_recognised_where_the_map_covers_half_the_view() {
-    let perturb = homing::io::perturb::PerturbationSpec {
-        drops: vec![
-            "7.733s:12.733s".parse().unwrap(),
-            "17.967s:22.967s".parse().unwrap(),
-            "28.2s:33.2s".parse().unwrap(),
-        ],
-        ..Default::default()
-    };
-    let s = common::run_small("revisit", perturb).summary;
-    assert_eq!(s.maps, 1);
-    assert_eq!(s.pools_rolled_back, 0, "a right merge was rolled back");
-    let ev = s.evaluation.as_ref().unwrap();
-    assert_eq!(ev["closures"]["accepted_wrong"].as_u64().unwrap(), 0);
-    assert!(ate(&s) < 0.03, "ATE {} m", ate(&s));
+    revisit_ends_in_one_right_map(&["7.733s:12.733s", "17.967s:22.967s", "28.2s:33.2s"], 0.03);
 }
 
 /// Two 1 s drops in small `desk` (2.8 s and 6.2 s): each time the camera comes back about
