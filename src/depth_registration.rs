@@ -1364,7 +1364,8 @@ mod tests {
     /// of its group's keyframes off), against a source that sees 4 m of the corridor: the
     /// normals give the length a sliver of information, and the fit used to slide metres
     /// along it to where the target is as wide as the source (10 m on small `loop` with two
-    /// 1 s drops). The length keeps the guess.
+    /// 1 s drops). Now the length keeps the guess, or (the walls then do not fit, as here)
+    /// there is no alignment at all.
     #[test]
     fn nearly_parallel_walls_do_not_slide_along_the_corridor() {
         let mut rng = ChaCha8Rng::seed_from_u64(5);
