@@ -775,6 +775,10 @@ fn align_wide_planes(
         if !spread || pairs.len() < 3 {
             return None;
         }
+        // No step along a translation no paired normal points along (a corridor's length):
+        // normals a few degrees from coplanar would give it a sliver of information, and the
+        // step a slide of metres to meet where two nearly parallel walls cross.
+        let keep = constrained_translations(&pairs, &target);
         for _ in 0..10 {
             let mut h = Matrix6::<f64>::zeros();
             let mut g = Vector6::<f64>::zeros();
@@ -789,10 +793,7 @@ fn align_wide_planes(
                     g += w * t.distance(&q) * j;
                 }
             }
-            // No step along a translation no paired normal points along (a corridor's length):
-            // normals a few degrees from coplanar would give it a sliver of information, and
-            // the step a slide of metres to meet where two nearly parallel walls cross.
-            let (h, g) = without_free_translation(&h, &g, &pairs, &target);
+            let (h, g) = (keep * h * keep, keep * g);
             let delta = damped_step(&h, &g)?;
             est = se3::retract(&est, &delta);
             info = h;
@@ -813,15 +814,10 @@ fn align_wide_planes(
     })
 }
 
-/// `h` and `g` with the translation along the direction that the paired target planes'
-/// normals leave nearly unseen (less than [`MIN_NORMAL_SPREAD_DEG`] from all of them
-/// perpendicular) projected out; unchanged when the normals span every direction.
-fn without_free_translation(
-    h: &Matrix6<f64>,
-    g: &Vector6<f64>,
-    pairs: &[(usize, usize)],
-    target: &[WidePlane],
-) -> (Matrix6<f64>, Vector6<f64>) {
+/// The projector onto the perturbations without the translation that the paired target
+/// planes' normals leave nearly unseen (less than [`MIN_NORMAL_SPREAD_DEG`] from all of them
+/// perpendicular); the identity when the normals span every direction.
+fn constrained_translations(pairs: &[(usize, usize)], target: &[WidePlane]) -> Matrix6<f64> {
     let n: nalgebra::Matrix3<f64> = pairs
         .iter()
         .map(|&(_, ti)| target[ti].normal * target[ti].normal.transpose())
@@ -829,12 +825,11 @@ fn without_free_translation(
     let eig = n.symmetric_eigen();
     let k = eig.eigenvalues.imin();
     if eig.eigenvalues[k] >= MIN_NORMAL_SPREAD_DEG.to_radians().sin().powi(2) {
-        return (*h, *g);
+        return Matrix6::identity();
     }
     let d = eig.eigenvectors.column(k).into_owned();
     let e = Vector6::new(0.0, 0.0, 0.0, d.x, d.y, d.z);
-    let p = Matrix6::identity() - e * e.transpose();
-    (p * h * p, p * g)
+    Matrix6::identity() - e * e.transpose()
 }
 
 /// A translation is constrained by the paired planes only if some normal is at least this
