@@ -195,6 +195,51 @@ enum BenchCmd {
         #[arg(long, value_name = "DIR")]
         case_study: Option<PathBuf>,
     },
+    /// How much place evidence two stretches of a sequence share, by the ground truth: per
+    /// query frame, the reference frame whose key points (with depth) it sees most and finds
+    /// by descriptor, with a chance-level control. Tells a missed closure from an absent one.
+    ///
+    /// Example: homing bench overlap --sequence data/small/aliasing --reference 7:18.8 --query 22:32
+    Overlap {
+        /// TUM RGB-D folder with groundtruth.txt.
+        #[arg(long)]
+        sequence: PathBuf,
+        /// The reference stretch, START:END in seconds from the first frame.
+        #[arg(long, value_name = "START:END", value_parser = parse_seconds_span)]
+        reference: (f64, f64),
+        /// The query stretch, START:END in seconds from the first frame.
+        #[arg(long, value_name = "START:END", value_parser = parse_seconds_span)]
+        query: (f64, f64),
+        /// Take every n-th frame of each stretch.
+        #[arg(long, default_value_t = 5)]
+        every: usize,
+        /// Search radius around the ground-truth projection (pixels at level 0).
+        #[arg(long, default_value_t = 8.0)]
+        radius: f64,
+        /// Config file (TOML): the run's camera and ORB settings.
+        #[arg(long)]
+        config: Option<PathBuf>,
+    },
+}
+
+/// `START:END` in seconds (`7:18.8`, `7s:18.8s`), START < END.
+fn parse_seconds_span(s: &str) -> std::result::Result<(f64, f64), String> {
+    let (a, b) = s
+        .split_once(':')
+        .ok_or_else(|| format!("'{s}' is not START:END"))?;
+    let num = |x: &str| {
+        x.trim()
+            .trim_end_matches('s')
+            .parse::<f64>()
+            .ok()
+            .filter(|v| v.is_finite() && *v >= 0.0)
+            .ok_or_else(|| format!("'{x}' is not a number of seconds"))
+    };
+    let (a, b) = (num(a)?, num(b)?);
+    if a >= b {
+        return Err(format!("'{s}': START must be before END"));
+    }
+    Ok((a, b))
 }
 
 #[derive(Args)]
@@ -364,6 +409,29 @@ fn main() {
         }) => homing::bench::tracking(&sequence, config.as_deref(), &out)
             .map(|md| print!("{md}"))
             .map_err(Into::into),
+        Cmd::Bench(BenchCmd::Overlap {
+            sequence,
+            reference,
+            query,
+            every,
+            radius,
+            config,
+        }) => {
+            let opts = homing::bench::overlap::OverlapOptions {
+                reference,
+                query,
+                every,
+                radius_px: radius,
+            };
+            homing::bench::overlap::overlap(&sequence, config.as_deref(), &opts)
+                .map(|r| {
+                    print!(
+                        "{}",
+                        r.markdown(&std::env::args().collect::<Vec<_>>().join(" "))
+                    )
+                })
+                .map_err(Into::into)
+        }
         Cmd::Bench(BenchCmd::CaseStudy {
             out,
             data,

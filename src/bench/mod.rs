@@ -2,9 +2,11 @@
 //! sequence in both modes and reports per-stage milliseconds per frame, throughput against
 //! real time and the trajectory error; `homing bench case-study` reproduces the paper's
 //! Table II (see [`case_study`]); `homing bench robustness` runs the perturbation grid of the
-//! paper's experiments under every controller (see [`robustness`]).
+//! paper's experiments under every controller (see [`robustness`]); `homing bench overlap`
+//! measures with the ground truth how much place evidence two stretches share (see [`overlap`]).
 
 pub mod case_study;
+pub mod overlap;
 pub mod robustness;
 pub mod robustness_plot;
 

@@ -182,3 +182,30 @@ fn missing_sequence_is_a_clear_error() {
     ]);
     common::assert_clear_error(ok, &stderr, "nope");
 }
+
+/// `homing bench overlap` on small `aliasing`: where `aliasing` 3×3 s loses the first map (drops
+/// 8.15–11.15 s), the ground truth shows no place evidence across the gap (docs/robustness-notes.md);
+/// on the same path 0.5–2 s apart it shows plenty, and the turned control shows none.
+#[test]
+fn overlap_probe_tells_an_absent_join_from_a_present_one() {
+    use homing::bench::overlap::{OverlapOptions, overlap};
+    let seq = common::small("aliasing");
+    let probe = |reference, query| {
+        let opts = OverlapOptions {
+            reference,
+            query,
+            every: 5,
+            radius_px: 8.0,
+        };
+        overlap(&seq, None, &opts).unwrap().rows
+    };
+    let same_path = probe((14.0, 15.0), (15.5, 17.0));
+    assert!(!same_path.is_empty());
+    for r in &same_path {
+        assert!(r.matched_search >= 50, "{r:?}");
+        assert!(r.control_tracker <= 3, "{r:?}");
+    }
+    let across_gap = probe((0.0, 8.15), (11.15, 14.0));
+    let best = across_gap.iter().map(|r| r.matched_search).max().unwrap();
+    assert!(best <= 5, "{across_gap:?}");
+}
