@@ -12,9 +12,11 @@
 //! turned by [`CONTROL_TURN_DEG`] gives the chance level of those descriptor distances.
 //! Frames are processed exactly as a run's front end does (same camera, same ORB settings).
 
+use crate::aligner::backproject;
 use crate::error::{Error, Result};
 use crate::io::tum::{FrameSource, StampedPose};
-use crate::preprocess::{Measurement, Preprocessor, hamming};
+use crate::optim::Intrinsics;
+use crate::preprocess::{ImageGeometry, Measurement, Preprocessor, hamming};
 use nalgebra::{Isometry3, Point3, UnitQuaternion, Vector3};
 use std::fmt::Write as _;
 use std::path::Path;
@@ -79,17 +81,11 @@ pub fn overlap(
 ) -> Result<OverlapReport> {
     let (seq, camera, orb) = crate::system::open_run_front_end(sequence, config, false)?;
     let tracker_distance = match config {
-        Some(p) => {
-            crate::config::Config::load(p)?
-                .tracker
-                .max_descriptor_distance
-        }
-        None => {
-            crate::config::Config::default()
-                .tracker
-                .max_descriptor_distance
-        }
-    };
+        Some(p) => crate::config::Config::load(p)?,
+        None => crate::config::Config::default(),
+    }
+    .tracker
+    .max_descriptor_distance;
     let gt = seq
         .groundtruth()?
         .ok_or_else(|| Error::file(sequence, "has no ground truth; the overlap probe needs it"))?;
@@ -106,6 +102,12 @@ pub fn overlap(
                 continue;
             };
             let frame = seq.load(i)?;
+            if frame.depth.is_none() {
+                return Err(Error::file(
+                    sequence,
+                    "is read without depth (a monocular config?); the overlap probe needs depth",
+                ));
+            }
             let m = pre.process(&frame)?;
             out.push(Probe {
                 t: frame.t - t0,
@@ -128,14 +130,19 @@ pub fn overlap(
         nalgebra::Translation3::identity(),
         UnitQuaternion::from_axis_angle(&Vector3::y_axis(), CONTROL_TURN_DEG.to_radians()),
     );
-    let k = Intr {
-        fx: camera.fx,
-        fy: camera.fy,
-        cx: camera.cx,
-        cy: camera.cy,
-        w: camera.width as f64,
-        h: camera.height as f64,
-    };
+    let k = ImageGeometry::new(
+        Intrinsics {
+            fx: camera.fx,
+            fy: camera.fy,
+            cx: camera.cx,
+            cy: camera.cy,
+            bf: 0.0,
+        },
+        camera.width,
+        camera.height,
+        orb.scale_factor,
+        orb.n_levels,
+    );
     let rows = queries
         .iter()
         .map(|q| {
@@ -165,15 +172,6 @@ pub fn overlap(
     })
 }
 
-struct Intr {
-    fx: f64,
-    fy: f64,
-    cx: f64,
-    cy: f64,
-    w: f64,
-    h: f64,
-}
-
 /// The ground-truth pose nearest `t`, if within [`MAX_GT_DT`].
 fn pose_at(gt: &[StampedPose], t: f64) -> Option<Isometry3<f64>> {
     let i = gt.partition_point(|p| p.t < t);
@@ -189,7 +187,7 @@ fn pose_at(gt: &[StampedPose], t: f64) -> Option<Isometry3<f64>> {
 /// Reference key points of `r` visible from `q` placed at `q_pose`, and how many of them a
 /// query descriptor within `radius` pixels matches at 50 and at `tracker_distance`.
 fn count(
-    k: &Intr,
+    k: &ImageGeometry,
     r: &Probe,
     q: &Probe,
     q_pose: &Isometry3<f64>,
@@ -203,15 +201,11 @@ fn count(
         if d <= 0.0 {
             continue;
         }
-        let p_r = Point3::new((kp.un.x - k.cx) / k.fx * d, (kp.un.y - k.cy) / k.fy * d, d);
-        let p = to_query * p_r;
-        if p.z < 0.1 {
+        let p = to_query * Point3::from(backproject(&k.intr, &kp.un, d));
+        let Some(uv) = k.project_in_image(&p.coords) else {
             continue;
-        }
-        let (u, v) = (k.fx * p.x / p.z + k.cx, k.fy * p.y / p.z + k.cy);
-        if !(0.0..k.w).contains(&u) || !(0.0..k.h).contains(&v) {
-            continue;
-        }
+        };
+        let (u, v) = (uv.x, uv.y);
         // Sampled at the undistorted pixel: a few pixels off near the border of a distorted
         // camera, which only makes the count conservative there.
         if let Some(depth) = &q.depth {
@@ -278,14 +272,9 @@ mod tests {
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
-    const K: Intr = Intr {
-        fx: 525.0,
-        fy: 525.0,
-        cx: 319.5,
-        cy: 239.5,
-        w: 640.0,
-        h: 480.0,
-    };
+    fn k() -> ImageGeometry {
+        ImageGeometry::new(Intrinsics::TUM_FREIBURG1, 640, 480, 1.2, 8)
+    }
 
     /// A wall 2 m in front of the camera at `pose`: key points on a 40 px lattice, each with
     /// its own descriptor, and a depth image that reads the wall everywhere.
@@ -309,14 +298,14 @@ mod tests {
     #[test]
     fn the_same_view_is_found_and_the_turned_control_is_not() {
         let r = wall_view(Isometry3::identity());
-        let (visible, search, tracker) = count(&K, &r, &r, &r.pose, 8.0, 64);
+        let (visible, search, tracker) = count(&k(), &r, &r, &r.pose, 8.0, 64);
         assert_eq!((visible, search, tracker), (140, 140, 140));
         let turned = r.pose
             * Isometry3::from_parts(
                 Translation3::identity(),
                 UnitQuaternion::from_axis_angle(&Vector3::y_axis(), CONTROL_TURN_DEG.to_radians()),
             );
-        let (visible, search, _) = count(&K, &r, &r, &turned, 8.0, 64);
+        let (visible, search, _) = count(&k(), &r, &r, &turned, 8.0, 64);
         // The wall still fills most of the turned view (its depth agrees), but every key point
         // lands about 90 px from its own, where only other descriptors are.
         assert!(visible > 90, "{visible} visible");
@@ -329,10 +318,10 @@ mod tests {
         let mut q = wall_view(Isometry3::identity());
         // Something 1 m in front of the query camera hides the wall.
         q.depth.as_mut().unwrap().data.fill(1.0);
-        assert_eq!(count(&K, &r, &q, &q.pose, 8.0, 64), (0, 0, 0));
+        assert_eq!(count(&k(), &r, &q, &q.pose, 8.0, 64), (0, 0, 0));
         // No reading (beyond the sensor's range) is no evidence either.
         q.depth.as_mut().unwrap().data.fill(0.0);
-        assert_eq!(count(&K, &r, &q, &q.pose, 8.0, 64), (0, 0, 0));
+        assert_eq!(count(&k(), &r, &q, &q.pose, 8.0, 64), (0, 0, 0));
     }
 
     #[test]
