@@ -64,6 +64,18 @@ fn default_fps() -> f64 {
 }
 
 impl CameraConfig {
+    /// Pinhole intrinsics of the undistorted image, with the virtual stereo baseline that
+    /// weighs depth (`bf = fx · virtual_baseline_m`).
+    pub fn intrinsics(&self) -> crate::optim::Intrinsics {
+        crate::optim::Intrinsics {
+            fx: self.fx,
+            fy: self.fy,
+            cx: self.cx,
+            cy: self.cy,
+            bf: self.fx * self.virtual_baseline_m,
+        }
+    }
+
     pub fn has_distortion(&self) -> bool {
         [self.k1, self.k2, self.p1, self.p2, self.k3]
             .iter()

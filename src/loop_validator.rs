@@ -403,7 +403,7 @@ pub fn validate_from_query_depth(
 }
 
 /// Largest Hamming distance of a descriptor-search match (ORB-SLAM's TH_LOW).
-const SEARCH_MAX_DISTANCE: u32 = 50;
+pub(crate) const SEARCH_MAX_DISTANCE: u32 = 50;
 /// Lowe's ratio of the descriptor search (ORB-SLAM's SearchByBoW: 0.75).
 const SEARCH_RATIO: f64 = 0.75;
 

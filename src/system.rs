@@ -13,7 +13,6 @@ use crate::io::mcap::{McapSequence, McapTopics};
 use crate::io::perturb::{PerturbationPlan, PerturbationSpec, PerturbedSequence};
 use crate::io::tum::{FrameSource, StampedPose, TumSequence};
 use crate::map::KfId;
-use crate::optim::Intrinsics;
 use crate::output::{
     ClosureRow, RunOutputs, StateRow, Summary, Timing, Transition, describe_camera,
 };
@@ -141,13 +140,7 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
     let mut extraction_reused_ms = 0.0;
     let out = RunOutputs::create(&opts.out)?;
 
-    let intr = Intrinsics {
-        fx: camera.fx,
-        fy: camera.fy,
-        cx: camera.cx,
-        cy: camera.cy,
-        bf: camera.fx * camera.virtual_baseline_m,
-    };
+    let intr = camera.intrinsics();
     let mut pre = Preprocessor::new(&camera, &config.orb)?;
     let mut viz = match &opts.rerun {
         Some(target) => Some(crate::viz::Visualizer::open(

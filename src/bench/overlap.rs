@@ -14,21 +14,28 @@
 
 use crate::aligner::backproject;
 use crate::error::{Error, Result};
-use crate::io::tum::{FrameSource, StampedPose};
-use crate::optim::Intrinsics;
+use crate::eval::run::gt_at;
+use crate::io::tum::FrameSource;
+use crate::loop_validator::SEARCH_MAX_DISTANCE;
 use crate::preprocess::{ImageGeometry, Measurement, Preprocessor, hamming};
 use nalgebra::{Isometry3, Point3, UnitQuaternion, Vector3};
 use std::fmt::Write as _;
 use std::path::Path;
 
-/// Largest Hamming distance of a descriptor search match (closures and merges).
-const SEARCH_MAX_DISTANCE: u32 = 50;
 /// Turn of the query camera about its own vertical axis for the chance-level control: at
 /// fx 262 (320 × 240) a point moves about 45 px, at fx 525 about 90 px, far outside any
 /// search radius.
 pub const CONTROL_TURN_DEG: f64 = 10.0;
 /// Ground-truth stamps farther than this from a frame leave the frame out.
 const MAX_GT_DT: f64 = 0.02;
+
+/// The control's turn, in the query camera's frame.
+fn control_turn() -> Isometry3<f64> {
+    Isometry3::from_parts(
+        nalgebra::Translation3::identity(),
+        UnitQuaternion::from_axis_angle(&Vector3::y_axis(), CONTROL_TURN_DEG.to_radians()),
+    )
+}
 
 /// What the probe compares: two stretches of one sequence, in seconds from its first frame.
 #[derive(Debug, Clone)]
@@ -98,7 +105,7 @@ pub fn overlap(
             .step_by(opts.every.max(1))
             .collect();
         for i in idx {
-            let Some(pose) = pose_at(&gt, seq.timestamp(i)) else {
+            let Some(pose) = gt_at(&gt, seq.timestamp(i), MAX_GT_DT) else {
                 continue;
             };
             let frame = seq.load(i)?;
@@ -126,18 +133,9 @@ pub fn overlap(
     };
     let refs = load(opts.reference)?;
     let queries = load(opts.query)?;
-    let turn = Isometry3::from_parts(
-        nalgebra::Translation3::identity(),
-        UnitQuaternion::from_axis_angle(&Vector3::y_axis(), CONTROL_TURN_DEG.to_radians()),
-    );
+    let turn = control_turn();
     let k = ImageGeometry::new(
-        Intrinsics {
-            fx: camera.fx,
-            fy: camera.fy,
-            cx: camera.cx,
-            cy: camera.cy,
-            bf: 0.0,
-        },
+        camera.intrinsics(),
         camera.width,
         camera.height,
         orb.scale_factor,
@@ -170,18 +168,6 @@ pub fn overlap(
         rows,
         tracker_distance,
     })
-}
-
-/// The ground-truth pose nearest `t`, if within [`MAX_GT_DT`].
-fn pose_at(gt: &[StampedPose], t: f64) -> Option<Isometry3<f64>> {
-    let i = gt.partition_point(|p| p.t < t);
-    [i.checked_sub(1), Some(i)]
-        .into_iter()
-        .flatten()
-        .filter_map(|j| gt.get(j))
-        .min_by(|a, b| (a.t - t).abs().total_cmp(&(b.t - t).abs()))
-        .filter(|p| (p.t - t).abs() <= MAX_GT_DT)
-        .map(|p| p.pose)
 }
 
 /// Reference key points of `r` visible from `q` placed at `q_pose`, and how many of them a
@@ -267,8 +253,9 @@ impl OverlapReport {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::io::tum::DepthImage;
-    use nalgebra::{Translation3, Vector2};
+    use crate::io::tum::{DepthImage, StampedPose};
+    use crate::optim::Intrinsics;
+    use nalgebra::Vector2;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
@@ -300,11 +287,7 @@ mod tests {
         let r = wall_view(Isometry3::identity());
         let (visible, search, tracker) = count(&k(), &r, &r, &r.pose, 8.0, 64);
         assert_eq!((visible, search, tracker), (140, 140, 140));
-        let turned = r.pose
-            * Isometry3::from_parts(
-                Translation3::identity(),
-                UnitQuaternion::from_axis_angle(&Vector3::y_axis(), CONTROL_TURN_DEG.to_radians()),
-            );
+        let turned = r.pose * control_turn();
         let (visible, search, _) = count(&k(), &r, &r, &turned, 8.0, 64);
         // The wall still fills most of the turned view (its depth agrees), but every key point
         // lands about 90 px from its own, where only other descriptors are.
@@ -333,9 +316,9 @@ mod tests {
                 pose: Isometry3::translation(t, 0.0, 0.0),
             })
             .collect();
-        let p = pose_at(&gt, 0.105).unwrap();
+        let p = gt_at(&gt, 0.105, MAX_GT_DT).unwrap();
         assert!((p.translation.vector.x - 0.1).abs() < 1e-12);
-        assert!(pose_at(&gt, 0.15).is_none());
-        assert!(pose_at(&gt, 0.3).is_none());
+        assert!(gt_at(&gt, 0.15, MAX_GT_DT).is_none());
+        assert!(gt_at(&gt, 0.3, MAX_GT_DT).is_none());
     }
 }

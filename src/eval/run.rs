@@ -43,7 +43,7 @@ pub struct ClosureCheck {
 }
 
 /// Ground-truth camera-to-world pose nearest `t` (within `max_dt`).
-fn gt_at(gt: &[StampedPose], t: f64, max_dt: f64) -> Option<Isometry3<f64>> {
+pub(crate) fn gt_at(gt: &[StampedPose], t: f64, max_dt: f64) -> Option<Isometry3<f64>> {
     let i = gt.partition_point(|p| p.t < t);
     [i.checked_sub(1), Some(i)]
         .into_iter()
