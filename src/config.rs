@@ -220,13 +220,31 @@ impl Default for MappingConfig {
 #[serde(deny_unknown_fields, default)]
 pub struct LoopClosingConfig {
     pub enabled: bool,
+    /// Which index proposes closure candidates: `bow` (a bag-of-words vocabulary, ORB-SLAM's
+    /// scheme) or `hbst` (the paper's descriptor tree; its votes need descriptors within
+    /// `hbst_max_distance`, which real revisits from another viewpoint rarely give).
+    pub place_recognition: PlaceRecognition,
+    /// Vocabulary file for `bow` (from `vocab-tools train`); none: the built-in one.
+    pub vocabulary: Option<std::path::PathBuf>,
+    /// `bow`: keyframes covisible with a scored keyframe that add their scores to its group
+    /// (ORB-SLAM's accumulated score: a place is a group of views, not one image).
+    pub bow_group_size: u32,
+    /// `bow`: groups whose accumulated score is below this share of the best are no
+    /// candidates.
+    pub bow_group_ratio: f64,
     pub hbst_max_leaf_size: u32,
     pub hbst_max_distance: u32,
     /// Largest accepted |0.5 - set fraction| of the split bit of a node.
     pub hbst_max_split_imbalance: f64,
     /// Keyframes this recent are not closure candidates.
     pub temporal_window: u32,
+    /// `hbst`: fewest detector votes for a candidate.
     pub min_matches: u32,
+    /// Fewest descriptor correspondences (query key point ↔ candidate keyframe's map point,
+    /// Hamming ≤ 50) before the validator's RANSAC (ORB-SLAM's relocalization: 15). Real revisits
+    /// from a few decimetres and 10–30° away give 15–40; the RANSAC, the projection search of
+    /// the keyframe's local map and `min_inliers` then decide.
+    pub min_validation_matches: u32,
     /// Lowest loop-detector score (voting query descriptors / query descriptors).
     pub min_score: f64,
     /// Ratio test of the loop detector: a match is kept only when its distance is below this
@@ -291,11 +309,16 @@ impl Default for LoopClosingConfig {
     fn default() -> Self {
         Self {
             enabled: true,
+            place_recognition: PlaceRecognition::Bow,
+            vocabulary: None,
+            bow_group_size: 10,
+            bow_group_ratio: 0.75,
             hbst_max_leaf_size: 100,
             hbst_max_distance: 25,
             hbst_max_split_imbalance: 0.45,
             temporal_window: 20,
             min_matches: 40,
+            min_validation_matches: 15,
             min_score: 0.05,
             ambiguity_ratio: 0.9,
             self_similarity_filter: false,
@@ -325,6 +348,15 @@ impl Default for LoopClosingConfig {
             lost_place_from_query_depth: false,
         }
     }
+}
+
+/// The loop detector's index (see `LoopClosingConfig::place_recognition`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum PlaceRecognition {
+    #[default]
+    Bow,
+    Hbst,
 }
 
 /// The modal controller (paper section IV/V).
@@ -646,7 +678,26 @@ impl Config {
             3.0,
             100000.0,
         );
+        c.range(
+            "loop_closing.min_validation_matches",
+            l.min_validation_matches as f64,
+            4.0,
+            100000.0,
+        );
         c.range("loop_closing.min_score", l.min_score, 0.0, 1.0);
+        c.range(
+            "loop_closing.bow_group_size",
+            l.bow_group_size as f64,
+            0.0,
+            1000.0,
+        );
+        c.range("loop_closing.bow_group_ratio", l.bow_group_ratio, 0.0, 1.0);
+        if c.first.is_none()
+            && let Some(v) = &l.vocabulary
+            && let Err(e) = crate::loop_detector::vocabulary::shared(Some(v))
+        {
+            c.first = Some(("loop_closing.vocabulary".into(), e.to_string()));
+        }
         c.range("loop_closing.ambiguity_ratio", l.ambiguity_ratio, 0.1, 1.0);
         c.range(
             "loop_closing.self_similarity_max_own_neighbours",

@@ -203,7 +203,7 @@ pub fn validate(
             pairs.push((qi, p));
         }
     }
-    if pairs.len() < cfg.min_matches as usize {
+    if pairs.len() < cfg.min_validation_matches as usize {
         return reject(Rejection::TooFewMatches, pairs.len(), None);
     }
     let similarity = q
@@ -310,7 +310,7 @@ pub fn validate_from_query_depth(
         |&(qi, j): &(usize, usize)| rotation_bin(kf.keypoints[j].angle, q.m.keypoints[qi].angle);
     let keep = dominant_rotation_bins(pairs.iter().map(bin));
     pairs.retain(|x| keep.contains(&bin(x)));
-    if pairs.len() < cfg.min_matches as usize {
+    if pairs.len() < cfg.min_validation_matches as usize {
         return reject(Rejection::TooFewMatches, pairs.len(), None);
     }
     // The keyframe's camera among the query's points: T_kq (query camera → keyframe camera).
@@ -526,7 +526,7 @@ fn ransac_pose(
 ) -> Option<Isometry3<f64>> {
     let with_depth: Vec<&(usize, PointId)> =
         pairs.iter().filter(|(qi, _)| m.depth[*qi] > 0.0).collect();
-    if with_depth.len() >= cfg.min_matches as usize {
+    if with_depth.len() >= cfg.min_validation_matches as usize {
         let src: Vec<Vector3<f64>> = with_depth
             .iter()
             .map(|(qi, _)| backproject(&geo.intr, &m.keypoints[*qi].un, m.depth[*qi] as f64))

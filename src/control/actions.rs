@@ -4,7 +4,8 @@
 
 use super::StateMachine;
 use super::spec::{Acceptance, Activity, LoopScope, State};
-use crate::atlas::{ClosureEdge, MapId, PoolId, PoolKind};
+use crate::atlas::{Atlas, ClosureEdge, MapId, PoolId, PoolKind};
+use crate::loop_detector::Neighbourhood;
 use crate::geometry::Sim3;
 use crate::global_optimizer::{self, GlobalReport};
 use crate::loop_validator::{
@@ -537,9 +538,19 @@ impl StateMachine {
             return;
         }
         let aliased = &self.aliased;
-        let det = self.detector.detect(&m.descriptors, |img| {
-            !old.contains(&(img as KfId)) || aliased.contains(&(img as KfId))
-        });
+        let det = {
+            let covisible =
+                covisible_in(&self.atlas, self.cfg.loop_closing.bow_group_size as usize);
+            let nb = Neighbourhood {
+                covisible: &covisible,
+                floor: &[],
+            };
+            self.detector.detect_in(
+                &m.descriptors,
+                |img| !old.contains(&(img as KfId)) || aliased.contains(&(img as KfId)),
+                &nb,
+            )
+        };
         for c in det.candidates.iter().take(CANDIDATES_PER_QUERY) {
             let q = Query {
                 m,
@@ -585,9 +596,17 @@ impl StateMachine {
                     LoopScope::AllMaps => own.contains(&k) && near,
                 }
         };
-        let det = self
-            .detector
-            .detect_and_insert(kf as u64, &m.descriptors, exclude);
+        // The floor of the bag-of-words score: the query's covisible keyframes.
+        let floor: Vec<u64> = covisible.iter().map(|&k| k as u64).collect();
+        let det = {
+            let group = covisible_in(&self.atlas, self.cfg.loop_closing.bow_group_size as usize);
+            let nb = Neighbourhood {
+                covisible: &group,
+                floor: &floor,
+            };
+            self.detector
+                .detect_and_insert_in(kf as u64, &m.descriptors, exclude, &nb)
+        };
         let query_pose = self.atlas.maps[&cur].keyframes[&kf].pose_cw;
         for c in det.candidates.iter().take(CANDIDATES_PER_QUERY) {
             let Some(match_map) = self.atlas.map_of_keyframe(c.image as KfId) else {
@@ -623,9 +642,19 @@ impl StateMachine {
         let Some(cur) = self.current else { return };
         let own: BTreeSet<KfId> = self.atlas.maps[&cur].keyframes.keys().copied().collect();
         let aliased = &self.aliased;
-        let det = self.detector.detect(&m.descriptors, |img| {
-            own.contains(&(img as KfId)) || aliased.contains(&(img as KfId))
-        });
+        let det = {
+            let covisible =
+                covisible_in(&self.atlas, self.cfg.loop_closing.bow_group_size as usize);
+            let nb = Neighbourhood {
+                covisible: &covisible,
+                floor: &[],
+            };
+            self.detector.detect_in(
+                &m.descriptors,
+                |img| own.contains(&(img as KfId)) || aliased.contains(&(img as KfId)),
+                &nb,
+            )
+        };
         tracing::trace!(
             "frame {}: relocalization query: {:?}, near misses (keyframe, votes) {:?}",
             m.frame,
@@ -1969,5 +1998,19 @@ mod tests {
         assert_eq!(localized_inlier_floor(true, 50, 230), 115);
         assert_eq!(localized_inlier_floor(true, 50, 60), 50);
         assert_eq!(localized_inlier_floor(false, 50, 230), 50);
+    }
+}
+
+/// The best covisible keyframes of a keyframe, wherever it is in the atlas: the groups that
+/// bag-of-words place recognition accumulates scores over.
+fn covisible_in(atlas: &Atlas, n: usize) -> impl Fn(u64) -> Vec<u64> + '_ {
+    move |img| {
+        let k = img as KfId;
+        atlas
+            .maps
+            .values()
+            .find_map(|m| m.keyframes.get(&k))
+            .map(|kf| kf.best_covisible(n).into_iter().map(|c| c as u64).collect())
+            .unwrap_or_default()
     }
 }

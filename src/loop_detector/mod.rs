@@ -14,15 +14,18 @@
 //! loop validator's job. Nothing here decides modal behaviour.
 
 pub mod hbst;
+pub mod vocabulary;
 
 pub use hbst::{
     BruteForce, DescriptorIndex, DescriptorMatch, Hbst, HbstParams, ImageMatches, QueryResult,
     TreeStats,
 };
 
-use crate::config::LoopClosingConfig;
+use crate::config::{LoopClosingConfig, PlaceRecognition};
 use crate::preprocess::Descriptor;
 use std::collections::{BTreeMap, BTreeSet};
+use std::sync::Arc;
+use vocabulary::{BowDatabase, BowVector, Vocabulary};
 
 /// Self-similarity filter: query descriptors that do not vote.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -104,12 +107,46 @@ pub struct Detection {
     pub report: DetectionReport,
 }
 
-/// The loop detector: a descriptor index plus the voting rules. `I` is the HBST in the system;
-/// [`BruteForce`] gives the exact reference with the same scoring.
+/// The bag-of-words index (when `place_recognition = "bow"`): it replaces the descriptor index
+/// and its votes.
+#[derive(Debug, Clone)]
+struct Bow {
+    vocabulary: Arc<Vocabulary>,
+    db: BowDatabase,
+    group_size: usize,
+    group_ratio: f64,
+}
+
+/// What bag-of-words scoring needs from the map (ORB-SLAM's DetectLoopCandidates): the
+/// covisibility groups that accumulate scores, and the query's own neighbours, whose lowest
+/// score is the least a candidate must reach.
+#[derive(Clone, Copy)]
+pub struct Neighbourhood<'a> {
+    /// The best covisible keyframes of a stored image.
+    pub covisible: &'a dyn Fn(u64) -> Vec<u64>,
+    /// Stored images that see what the query sees (a keyframe's covisible keyframes); empty:
+    /// no floor (a frame relocalizing has no such neighbours).
+    pub floor: &'a [u64],
+}
+
+impl Neighbourhood<'static> {
+    /// No covisibility known: every image is its own group, no floor.
+    pub fn none() -> Self {
+        Neighbourhood {
+            covisible: &|_| Vec::new(),
+            floor: &[],
+        }
+    }
+}
+
+/// The loop detector: a descriptor index plus the voting rules, or a bag-of-words database.
+/// `I` is the HBST in the system; [`BruteForce`] gives the exact reference with the same
+/// scoring.
 #[derive(Debug, Clone)]
 pub struct LoopDetector<I: DescriptorIndex = Hbst> {
     index: I,
     params: LoopDetectorParams,
+    bow: Option<Bow>,
     /// Insertion order of the stored images (sequence number → image, and back).
     by_seq: BTreeMap<u64, u64>,
     seq_of: BTreeMap<u64, u64>,
@@ -121,8 +158,17 @@ impl LoopDetector<Hbst> {
         Self::with_index(Hbst::new(params.hbst), params)
     }
 
+    /// The configured index. A vocabulary that cannot be read was already refused by
+    /// `Config::validate`; should it vanish since, the HBST stands in (logged as an error).
     pub fn from_config(c: &LoopClosingConfig) -> Self {
-        Self::new(LoopDetectorParams::from_config(c))
+        let mut d = Self::new(LoopDetectorParams::from_config(c));
+        if c.place_recognition == PlaceRecognition::Bow {
+            match vocabulary::shared(c.vocabulary.as_deref()) {
+                Ok(v) => d.use_vocabulary(v, c.bow_group_size as usize, c.bow_group_ratio),
+                Err(e) => tracing::error!("place recognition falls back to the HBST: {e}"),
+            }
+        }
+        d
     }
 }
 
@@ -131,6 +177,7 @@ impl<I: DescriptorIndex> LoopDetector<I> {
         Self {
             index,
             params,
+            bow: None,
             by_seq: BTreeMap::new(),
             seq_of: BTreeMap::new(),
             next_seq: 0,
@@ -139,6 +186,22 @@ impl<I: DescriptorIndex> LoopDetector<I> {
 
     pub fn params(&self) -> &LoopDetectorParams {
         &self.params
+    }
+
+    /// Proposes candidates by bag of words from now on (call before storing images).
+    pub fn use_vocabulary(&mut self, v: Arc<Vocabulary>, group_size: usize, group_ratio: f64) {
+        self.bow = Some(Bow {
+            vocabulary: v,
+            db: BowDatabase::default(),
+            group_size,
+            group_ratio,
+        });
+    }
+
+    /// Whether candidates come from the bag-of-words database (they then carry no
+    /// descriptor matches: the validator searches for its own).
+    pub fn is_bow(&self) -> bool {
+        self.bow.is_some()
     }
 
     pub fn index(&self) -> &I {
@@ -153,6 +216,24 @@ impl<I: DescriptorIndex> LoopDetector<I> {
         descriptors: &[Descriptor],
         exclude: impl Fn(u64) -> bool,
     ) -> Detection {
+        self.detect_and_insert_in(image, descriptors, exclude, &Neighbourhood::none())
+    }
+
+    /// [`Self::detect_and_insert`] with the map's covisibility for bag-of-words scoring.
+    pub fn detect_and_insert_in(
+        &mut self,
+        image: u64,
+        descriptors: &[Descriptor],
+        exclude: impl Fn(u64) -> bool,
+        nb: &Neighbourhood,
+    ) -> Detection {
+        if let Some(bow) = &mut self.bow {
+            let v = bow.vocabulary.transform(descriptors);
+            let d = bow_detect(bow, descriptors.len(), &v, exclude, nb);
+            bow.db.insert(image, v);
+            self.note_inserted(image);
+            return d;
+        }
         let own = self.params.self_similarity.is_some();
         let r = self
             .index
@@ -171,6 +252,20 @@ impl<I: DescriptorIndex> LoopDetector<I> {
 
     /// Queries without storing (e.g. relocalization of a frame against other maps).
     pub fn detect(&self, descriptors: &[Descriptor], exclude: impl Fn(u64) -> bool) -> Detection {
+        self.detect_in(descriptors, exclude, &Neighbourhood::none())
+    }
+
+    /// [`Self::detect`] with the map's covisibility for bag-of-words scoring.
+    pub fn detect_in(
+        &self,
+        descriptors: &[Descriptor],
+        exclude: impl Fn(u64) -> bool,
+        nb: &Neighbourhood,
+    ) -> Detection {
+        if let Some(bow) = &self.bow {
+            let v = bow.vocabulary.transform(descriptors);
+            return bow_detect(bow, descriptors.len(), &v, exclude, nb);
+        }
         let own = self.params.self_similarity.is_some();
         let r = self.index.query_detailed(descriptors, |i| !exclude(i), own);
         score(descriptors.len(), &r, &self.params)
@@ -178,13 +273,19 @@ impl<I: DescriptorIndex> LoopDetector<I> {
 
     /// Stores an image without querying.
     pub fn insert(&mut self, image: u64, descriptors: &[Descriptor]) {
-        self.index.insert(image, descriptors);
+        match &mut self.bow {
+            Some(bow) => bow.db.insert(image, bow.vocabulary.transform(descriptors)),
+            None => self.index.insert(image, descriptors),
+        }
         self.note_inserted(image);
     }
 
     /// Forgets an image (its keyframe was culled or its map discarded).
     pub fn remove(&mut self, image: u64) {
-        self.index.remove_image(image);
+        match &mut self.bow {
+            Some(bow) => bow.db.remove(image),
+            None => self.index.remove_image(image),
+        }
         if let Some(s) = self.seq_of.remove(&image) {
             self.by_seq.remove(&s);
         }
@@ -202,6 +303,79 @@ impl<I: DescriptorIndex> LoopDetector<I> {
         }
         self.by_seq.insert(self.next_seq, image);
         self.next_seq += 1;
+    }
+}
+
+/// Bag-of-words candidates (ORB-SLAM's DetectLoopCandidates / DetectRelocalizationCandidates):
+/// stored images that share at least 80 % of the most words any image shares with the query,
+/// and score at least the query's lowest score against its own neighbours (`nb.floor`); each
+/// is scored with its group (itself and its best covisible images that also pass), and the
+/// groups within `group_ratio` of the best give their best image as a candidate, best group
+/// first. The rest of the groups are near misses.
+fn bow_detect(
+    bow: &Bow,
+    n_query: usize,
+    v: &BowVector,
+    exclude: impl Fn(u64) -> bool,
+    nb: &Neighbourhood,
+) -> Detection {
+    let scored = bow.db.query(v, |i| !exclude(i));
+    let mut report = DetectionReport {
+        query_descriptors: n_query,
+        raw_matches: scored.iter().map(|x| x.2 as usize).sum(),
+        images_matched: scored.len(),
+        ..Default::default()
+    };
+    let max_common = scored.iter().map(|x| x.2).max().unwrap_or(0);
+    let floor = nb
+        .floor
+        .iter()
+        .filter_map(|f| bow.db.get(*f))
+        .map(|w| vocabulary::score(v, w))
+        .min_by(f64::total_cmp)
+        .unwrap_or(0.0);
+    let kept: BTreeMap<u64, f64> = scored
+        .iter()
+        .filter(|x| x.2 as f64 >= 0.8 * max_common as f64 && x.1 >= floor && x.1 > 0.0)
+        .map(|x| (x.0, x.1))
+        .collect();
+    // (accumulated score, best image, its score) per group, one per best image.
+    let mut groups: BTreeMap<u64, (f64, f64)> = BTreeMap::new();
+    for (&img, &s) in &kept {
+        let (mut acc, mut best) = (s, (s, img));
+        for n in (nb.covisible)(img).into_iter().take(bow.group_size) {
+            if let Some(&sn) = kept.get(&n) {
+                acc += sn;
+                if sn > best.0 || (sn == best.0 && n < best.1) {
+                    best = (sn, n);
+                }
+            }
+        }
+        let e = groups.entry(best.1).or_insert((acc, best.0));
+        e.0 = e.0.max(acc);
+    }
+    let best_acc = groups.values().map(|g| g.0).fold(0.0, f64::max);
+    let mut ranked: Vec<(f64, u64, f64)> = groups.into_iter().map(|(i, (a, s))| (a, i, s)).collect();
+    ranked.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+    let mut candidates = Vec::new();
+    let mut near_misses = Vec::new();
+    for (acc, image, s) in ranked {
+        let c = Candidate {
+            image,
+            score: s,
+            matches: Vec::new(),
+        };
+        if acc >= bow.group_ratio * best_acc {
+            candidates.push(c);
+        } else if near_misses.len() < NEAR_MISSES {
+            near_misses.push(c);
+        }
+    }
+    report.candidates = candidates.len();
+    Detection {
+        candidates,
+        near_misses,
+        report,
     }
 }
 

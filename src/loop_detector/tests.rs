@@ -437,3 +437,86 @@ fn params_come_from_the_config() {
             .is_none()
     );
 }
+
+/// Places: each a set of landmarks; a view of a place sees most of them with bit noise.
+fn bow_world(seed: u64) -> (ChaCha8Rng, Vec<Vec<Descriptor>>) {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let places = (0..12).map(|_| random_descs(&mut rng, 300)).collect();
+    (rng, places)
+}
+
+fn view(rng: &mut ChaCha8Rng, place: &[Descriptor], flips: usize) -> Vec<Descriptor> {
+    place
+        .iter()
+        .filter(|_| rng.random::<f64>() < 0.7)
+        .map(|d| perturb(rng, d, flips))
+        .collect()
+}
+
+fn bow_detector(seed: u64) -> LoopDetector {
+    let (mut rng, places) = bow_world(seed + 100);
+    let training: Vec<Vec<Descriptor>> = places.iter().map(|p| view(&mut rng, p, 10)).collect();
+    let v = vocabulary::Vocabulary::train(&training, 8, 3, 1).unwrap();
+    let mut d = LoopDetector::new(LoopDetectorParams::default());
+    d.use_vocabulary(Arc::new(v), 10, 0.75);
+    d
+}
+
+#[test]
+fn bow_finds_a_revisit_far_beyond_the_hbst_distance_and_respects_exclusion() {
+    // Views of places 0..6 stored as keyframes 0..6; place 3 revisited with 35 bits changed
+    // per descriptor (a real change of viewpoint), where the HBST's 25 finds nothing.
+    let (mut rng, places) = bow_world(7);
+    let mut det = bow_detector(7);
+    assert!(det.is_bow());
+    for (i, p) in places.iter().take(6).enumerate() {
+        let v = view(&mut rng, p, 8);
+        det.insert(i as u64, &v);
+    }
+    let q = view(&mut rng, &places[3], 35);
+    let d = det.detect(&q, |_| false);
+    assert_eq!(d.candidates.first().map(|c| c.image), Some(3), "{:?}", d.report);
+    assert!(d.candidates.iter().all(|c| c.matches.is_empty()));
+    let d = det.detect(&q, |i| i == 3);
+    assert!(d.candidates.iter().all(|c| c.image != 3));
+    // A removed keyframe is no candidate any more.
+    det.remove(3);
+    assert!(det.detect(&q, |_| false).candidates.iter().all(|c| c.image != 3));
+}
+
+#[test]
+fn bow_groups_accumulate_over_covisible_keyframes_and_the_floor_refuses_weak_ones() {
+    let (mut rng, places) = bow_world(9);
+    let mut det = bow_detector(9);
+    // Keyframes 0..3: three views of place 1 (one group); keyframe 10: one view of place 2.
+    for i in 0..3 {
+        let v = view(&mut rng, &places[1], 12);
+        det.insert(i, &v);
+    }
+    let v = view(&mut rng, &places[2], 12);
+    det.insert(10, &v);
+    // The query sees place 2 best, place 1 somewhat: a mix.
+    let mut q = view(&mut rng, &places[2], 30);
+    q.truncate(110);
+    q.extend(view(&mut rng, &places[1], 30).into_iter().take(90));
+    let single = det.detect(&q, |_| false);
+    let group = |k: u64| -> Vec<u64> {
+        if k < 3 { (0..3).filter(|&j| j != k).collect() } else { Vec::new() }
+    };
+    let nb = Neighbourhood {
+        covisible: &group,
+        floor: &[],
+    };
+    let grouped = det.detect_in(&q, |_| false, &nb);
+    assert_eq!(single.candidates[0].image, 10, "{:?}", single.candidates);
+    // Three views of place 1 together outweigh the single view of place 2.
+    assert!(grouped.candidates[0].image < 3, "{:?}", grouped.candidates);
+    // A floor above every stored score leaves no candidate.
+    let floor_img = 20;
+    det.insert(floor_img, &q);
+    let nb = Neighbourhood {
+        covisible: &group,
+        floor: &[floor_img],
+    };
+    assert!(det.detect_in(&q, |i| i == floor_img, &nb).candidates.is_empty());
+}

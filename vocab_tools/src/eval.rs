@@ -18,6 +18,7 @@ use homing::io::tum::{associate_nearest, read_trajectory};
 use homing::loop_detector::{
     BruteForce, DescriptorIndex, Detection, Hbst, LoopDetector, LoopDetectorParams,
 };
+use homing::loop_detector::vocabulary::{BowDatabase, BowVector, Vocabulary, score as bow_score};
 use homing::output::Timing;
 use homing::preprocess::Descriptor;
 use homing::{Error, Result};
@@ -26,6 +27,14 @@ use serde::Serialize;
 use std::fmt::Write as _;
 use std::path::Path;
 use std::time::Instant;
+
+/// Thresholds of the bag-of-words sweep: score relative to the query's score against the
+/// frame before it.
+pub const BOW_THRESHOLDS: [f64; 14] = [
+    0.0, 0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.45, 0.5, 0.6, 0.7, 0.8,
+];
+/// The bag-of-words operating point (relative score).
+pub const BOW_MIN_SCORE: f64 = 0.3;
 
 /// Score thresholds of the default sweep.
 pub const DEFAULT_THRESHOLDS: [f64; 14] = [
@@ -46,6 +55,8 @@ pub struct EvalOptions {
     pub time_bins: usize,
     /// Also run brute force (the reference); without it only the HBST is evaluated.
     pub brute_force: bool,
+    /// Also evaluate the bag-of-words database with this vocabulary.
+    pub vocabulary: Option<std::sync::Arc<Vocabulary>>,
 }
 
 impl Default for EvalOptions {
@@ -58,6 +69,7 @@ impl Default for EvalOptions {
             thresholds: DEFAULT_THRESHOLDS.to_vec(),
             time_bins: 6,
             brute_force: true,
+            vocabulary: None,
         }
     }
 }
@@ -77,6 +89,8 @@ pub struct Answer {
     pub best: Option<(usize, f64, usize)>,
     /// Whether the best candidate shows the same place.
     pub correct: Option<bool>,
+    /// How far the best candidate's camera is from the query's (metres, degrees).
+    pub error: Option<(f64, f64)>,
     /// Descriptor matches the index returned (before voting).
     pub raw_matches: usize,
     pub ms: f64,
@@ -91,7 +105,16 @@ pub struct QueryRecord {
     pub positive: bool,
     pub hbst: Answer,
     pub brute_force: Option<Answer>,
+    /// The bag-of-words database: best candidate by score normalised by the query's score
+    /// against the frame before it (DBoW2's normalised similarity).
+    pub bow: Option<Answer>,
+    /// The same, with each stored frame's score accumulated over its temporal neighbours
+    /// (ORB-SLAM's covisibility groups; here ±`BOW_GROUP` frames stand in for covisibility).
+    pub bow_group: Option<Answer>,
 }
+
+/// Half-width (frames) of the temporal neighbourhood that stands in for covisibility.
+pub const BOW_GROUP: usize = 5;
 
 /// Precision and recall of one method at one threshold.
 #[derive(Debug, Clone, Serialize)]
@@ -137,6 +160,8 @@ pub struct EvalReport {
     pub same_place_pair_share: f64,
     pub hbst: MethodReport,
     pub brute_force: Option<MethodReport>,
+    pub bow: Option<MethodReport>,
+    pub bow_group: Option<MethodReport>,
     /// Σ HBST descriptor matches / Σ brute-force descriptor matches (HBST's are a subset).
     pub raw_match_recall: Option<f64>,
     /// Median over queries (with brute-force matches) of the same ratio per query.
@@ -145,6 +170,12 @@ pub struct EvalReport {
     /// brute force has a candidate.
     pub top1_agreement: Option<f64>,
     pub records: Vec<QueryRecord>,
+}
+
+/// Distance (m) and angle (degrees) between two camera-to-world poses.
+pub fn pose_gap(a: &Isometry3<f64>, b: &Isometry3<f64>) -> (f64, f64) {
+    let rel = a.inverse() * b;
+    (rel.translation.vector.norm(), rel.rotation.angle().to_degrees())
 }
 
 /// Whether two camera-to-world poses show the same place.
@@ -168,6 +199,7 @@ fn answer(d: &Detection, ms: f64, frames: &[EvalFrame], q: usize, o: &EvalOption
                 o.max_angle_deg,
             )
         }),
+        error: best.map(|(j, _, _)| pose_gap(&frames[q].pose, &frames[j].pose)),
         raw_matches: d.report.raw_matches,
         ms,
     }
@@ -184,6 +216,56 @@ fn run_query<I: DescriptorIndex>(
     let d = det.detect_and_insert(i as u64, &frames[i].descriptors, |j| j + gap > i as u64);
     let ms = t0.elapsed().as_secs_f64() * 1e3;
     answer(&d, ms, frames, i, o)
+}
+
+/// One bag-of-words query: every stored frame at least `min_gap` older is scored; scores are
+/// divided by the query's score against the frame just before it (how similar "the same
+/// place" looks right now), and the best answers, per frame and per temporal group.
+fn run_bow_query(
+    db: &mut BowDatabase,
+    vecs: &[BowVector],
+    frames: &[EvalFrame],
+    i: usize,
+    o: &EvalOptions,
+) -> (Answer, Answer) {
+    let t0 = Instant::now();
+    let gap = o.min_gap as u64;
+    let scores = db.query(&vecs[i], |j| j + gap <= i as u64);
+    let norm = if i > 0 { bow_score(&vecs[i], &vecs[i - 1]) } else { 0.0 };
+    let rel = |s: f64| if norm > 0.0 { s / norm } else { 0.0 };
+    let best = scores
+        .iter()
+        .max_by(|a, b| a.1.total_cmp(&b.1).then(b.0.cmp(&a.0)))
+        .map(|&(j, sc, n)| (j as usize, rel(sc), n as usize));
+    // Group: accumulate over stored neighbours within ±BOW_GROUP frames.
+    let by: std::collections::BTreeMap<u64, f64> = scores.iter().map(|&(j, sc, _)| (j, sc)).collect();
+    let mut group_best: Option<(usize, f64, usize)> = None;
+    let mut best_acc = 0.0;
+    for &(j, _, _) in &scores {
+        let lo = j.saturating_sub(BOW_GROUP as u64);
+        let acc: f64 = by.range(lo..=j + BOW_GROUP as u64).map(|(_, s)| s).sum();
+        if acc > best_acc {
+            best_acc = acc;
+            // The group's best member answers.
+            let (&bj, &bs) = by
+                .range(lo..=j + BOW_GROUP as u64)
+                .max_by(|a, b| a.1.total_cmp(b.1).then(b.0.cmp(a.0)))
+                .expect("non-empty");
+            group_best = Some((bj as usize, rel(bs), 0));
+        }
+    }
+    let ms = t0.elapsed().as_secs_f64() * 1e3;
+    db.insert(i as u64, vecs[i].clone());
+    let mk = |best: Option<(usize, f64, usize)>| Answer {
+        best,
+        correct: best.map(|(j, _, _)| {
+            same_place(&frames[i].pose, &frames[j].pose, o.max_distance_m, o.max_angle_deg)
+        }),
+        error: best.map(|(j, _, _)| pose_gap(&frames[i].pose, &frames[j].pose)),
+        raw_matches: scores.len(),
+        ms,
+    };
+    (mk(best), mk(group_best))
 }
 
 /// Precision/recall of answers `a` (queries' best candidates) at one threshold.
@@ -287,6 +369,11 @@ pub fn evaluate(frames: &[EvalFrame], o: &EvalOptions) -> EvalReport {
     let mut hbst = LoopDetector::with_index(Hbst::new(p.hbst), p);
     let mut bf = LoopDetector::with_index(BruteForce::new(p.hbst.max_distance), p);
     let mut records = Vec::with_capacity(frames.len());
+    let vecs: Vec<BowVector> = match &o.vocabulary {
+        Some(v) => frames.iter().map(|f| v.transform(&f.descriptors)).collect(),
+        None => Vec::new(),
+    };
+    let mut db = BowDatabase::default();
     let (mut pairs, mut same_pairs) = (0usize, 0usize);
     for i in 0..frames.len() {
         let mut positive = false;
@@ -304,12 +391,21 @@ pub fn evaluate(frames: &[EvalFrame], o: &EvalOptions) -> EvalReport {
         }
         let h = run_query(&mut hbst, frames, i, o);
         let b = o.brute_force.then(|| run_query(&mut bf, frames, i, o));
+        let (bow, bow_group) = match o.vocabulary {
+            Some(_) => {
+                let (a, g) = run_bow_query(&mut db, &vecs, frames, i, o);
+                (Some(a), Some(g))
+            }
+            None => (None, None),
+        };
         records.push(QueryRecord {
             frame: i,
             stored: i,
             positive,
             hbst: h,
             brute_force: b,
+            bow,
+            bow_group,
         });
     }
     let positives = records.iter().filter(|r| r.positive).count();
@@ -323,6 +419,22 @@ pub fn evaluate(frames: &[EvalFrame], o: &EvalOptions) -> EvalReport {
             positives,
             o,
         )
+    });
+    let bow_o = EvalOptions {
+        thresholds: BOW_THRESHOLDS.to_vec(),
+        detector: LoopDetectorParams {
+            min_score: BOW_MIN_SCORE,
+            min_matches: 0,
+            ..o.detector
+        },
+        ..o.clone()
+    };
+    let bow_report = o
+        .vocabulary
+        .is_some()
+        .then(|| method_report("bow", &records, |r| r.bow.as_ref(), positives, &bow_o));
+    let bow_group_report = o.vocabulary.is_some().then(|| {
+        method_report("bow-group", &records, |r| r.bow_group.as_ref(), positives, &bow_o)
     });
     let (mut raw_h, mut raw_b) = (0usize, 0usize);
     let mut per_query = Vec::new();
@@ -350,6 +462,8 @@ pub fn evaluate(frames: &[EvalFrame], o: &EvalOptions) -> EvalReport {
         same_place_pair_share: same_pairs as f64 / pairs.max(1) as f64,
         hbst: hbst_report,
         brute_force: bf_report,
+        bow: bow_report,
+        bow_group: bow_group_report,
         raw_match_recall: (raw_b > 0).then(|| raw_h as f64 / raw_b as f64),
         raw_match_recall_median: (!per_query.is_empty()).then(|| per_query[per_query.len() / 2]),
         top1_agreement: (bf_answers > 0).then(|| agree as f64 / bf_answers as f64),
@@ -417,6 +531,7 @@ impl EvalReport {
         let methods: Vec<&MethodReport> = std::iter::once(&self.hbst)
             .chain(&self.brute_force)
             .collect();
+        let bows: Vec<&MethodReport> = self.bow.iter().chain(&self.bow_group).collect();
         let _ = writeln!(o, "\ndefault operating point (min_score, min_matches):");
         for m in &methods {
             let p = &m.default_point;
@@ -454,6 +569,52 @@ impl EvalReport {
                 );
             }
             o.push('\n');
+        }
+        if !bows.is_empty() {
+            let _ = writeln!(
+                o,
+                "\nbag of words: best candidate's score / the query's score against the frame \
+                 before it (bow-group: best of the best ±{BOW_GROUP}-frame group)"
+            );
+            for m in &bows {
+                let p = &m.default_point;
+                let _ = writeln!(
+                    o,
+                    "  {:<12} relative score ≥ {}: predictions {}, TP {}, precision {}, recall {}",
+                    m.name,
+                    p.min_score,
+                    p.predictions,
+                    p.true_positives,
+                    fmt_opt(p.precision),
+                    fmt_opt(p.recall)
+                );
+            }
+            let _ = write!(o, "  {:>9}", "rel_score");
+            for m in &bows {
+                let _ = write!(o, " | {:^24}", m.name);
+            }
+            o.push('\n');
+            for (k, &th) in bows[0].sweep.iter().map(|p| &p.min_score).enumerate() {
+                let _ = write!(o, "  {th:>9.3}");
+                for m in &bows {
+                    let p = &m.sweep[k];
+                    let _ = write!(
+                        o,
+                        " | {:>5} / {:>5}  ({:>4} pred)",
+                        fmt_opt(p.precision),
+                        fmt_opt(p.recall),
+                        p.predictions
+                    );
+                }
+                o.push('\n');
+            }
+            if let Some(t) = bows[0].time_by_stored.last() {
+                let _ = writeln!(
+                    o,
+                    "  bow query time at {}-{} stored: median {:.3} ms, p90 {:.3} ms",
+                    t.stored_from, t.stored_to, t.median_ms, t.p90_ms
+                );
+            }
         }
         if self.brute_force.is_some() {
             let _ = writeln!(

@@ -6,6 +6,7 @@ pub mod bench;
 pub mod descfile;
 pub mod eval;
 pub mod extract;
+pub mod train;
 pub mod tree;
 
 pub use descfile::{DescriptorFile, FrameDescriptors};

@@ -6,6 +6,7 @@ use clap::{Args, Parser, Subcommand};
 use homing::config::Config;
 use homing::io::atomic_write;
 use homing::loop_detector::LoopDetectorParams;
+use homing::loop_detector::vocabulary::Vocabulary;
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use vocab_tools::bench::{self, BenchOptions, Source, WorldParams};
@@ -103,11 +104,40 @@ enum Cmd {
         /// Skip brute force (it is quadratic in the number of frames).
         #[arg(long)]
         no_brute_force: bool,
+        /// Bag-of-words vocabulary to evaluate too ("built-in": the one homing ships).
+        #[arg(long)]
+        vocabulary: Option<PathBuf>,
         #[command(flatten)]
         tree: TreeArgs,
         /// Also write the report (with every query's answers) as JSON to this file.
         #[arg(long)]
         json: Option<PathBuf>,
+    },
+    /// Train a bag-of-words vocabulary (k-majority tree, TF-IDF) on generic photos.
+    ///
+    /// ORB features are extracted from every JPEG/PNG under the given folders exactly as
+    /// homing extracts them (config's [orb]); never train on a sequence you evaluate on.
+    ///
+    /// Example: vocab-tools train --images imagenet-sample-images --images BSDS500/images --out vocab/orb_k10_l5.voc
+    Train {
+        /// Folder (searched recursively) or file of training images; repeat for several.
+        #[arg(long, required = true)]
+        images: Vec<PathBuf>,
+        /// Config file (TOML) whose [orb] section sets the feature extraction.
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Branching factor of the tree.
+        #[arg(long, default_value_t = 10)]
+        k: u32,
+        /// Levels of the tree (words: up to k^levels).
+        #[arg(long, default_value_t = 5)]
+        levels: u32,
+        /// Seed of the k-means++ seeding.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Output vocabulary file (written atomically).
+        #[arg(long)]
+        out: PathBuf,
     },
     /// Time HBST query + insert (+ voting) per keyframe at several tree sizes.
     ///
@@ -228,6 +258,40 @@ fn main() {
 
 fn run(cmd: Cmd) -> Result<()> {
     match cmd {
+        Cmd::Train {
+            images,
+            config,
+            k,
+            levels,
+            seed,
+            out,
+        } => {
+            let cfg = match &config {
+                Some(p) => Config::load(p)?,
+                None => Config::default(),
+            };
+            let files = vocab_tools::train::image_files(&images)?;
+            if files.is_empty() {
+                bail!("no JPEG or PNG images under the given --images");
+            }
+            let (v, s) =
+                vocab_tools::train::train(&files, &cfg.orb, k, levels, seed, progress("train"))?;
+            v.save(&out)?;
+            for (f, e) in &s.skipped {
+                eprintln!("skipped {}: {e}", f.display());
+            }
+            println!(
+                "{} images ({} skipped), {} descriptors, {} words (k {k}, {levels} levels); \
+                 extraction {:.1} s, training {:.1} s; wrote {}",
+                s.images,
+                s.skipped.len(),
+                s.descriptors,
+                s.words,
+                s.seconds_extract,
+                s.seconds_train,
+                out.display()
+            );
+        }
         Cmd::Extract {
             sequence,
             config,
@@ -274,9 +338,16 @@ fn run(cmd: Cmd) -> Result<()> {
             thresholds,
             time_bins,
             no_brute_force,
+            vocabulary,
             tree: t,
             json,
         } => {
+            let vocabulary = match vocabulary {
+                None => None,
+                Some(p) if p.as_os_str() == "built-in" => Some(Vocabulary::built_in()),
+                Some(p) => Some(Vocabulary::load(&p)?),
+            }
+            .map(std::sync::Arc::new);
             let (p, _) = t.params()?;
             let file = read_descriptors(&descriptors)?;
             let (frames, skipped) =
@@ -296,6 +367,7 @@ fn run(cmd: Cmd) -> Result<()> {
                 thresholds: thresholds.unwrap_or_else(|| eval::DEFAULT_THRESHOLDS.to_vec()),
                 time_bins,
                 brute_force: !no_brute_force,
+                vocabulary,
             };
             let report = eval::evaluate(&frames, &o);
             println!(
