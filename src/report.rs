@@ -1410,8 +1410,35 @@ pub fn results_table(s: &Summary) -> String {
         .and_then(|v| v.as_str())
         .unwrap_or("")
         .to_uppercase();
+    // The largest map leads: several disconnected maps aligned as one give an ATE that
+    // describes none of them (a mono run's 1 cm largest map read as 13.5 cm over all maps).
+    let largest_ate = get("/largest_map/ate_rmse_m");
+    if let Some(r) = largest_ate {
+        line(
+            "largest map",
+            format!(
+                "ATE RMSE {} {:.4} m, {:.2} % of the frames, {:.2} % of the delivered \
+                 ones within {:.0} cm ({} maps in all)",
+                if align.is_empty() { "" } else { &align },
+                r,
+                100.0 * get("/largest_map_coverage").unwrap_or(0.0),
+                100.0 * get("/largest_map_accurate_coverage").unwrap_or(0.0),
+                100.0 * crate::eval::run::ACCURATE_M,
+                s.maps
+            ),
+        );
+    }
     line(
-        format!("ATE RMSE {}", if align.is_empty() { "" } else { &align }).trim_end(),
+        format!(
+            "ATE RMSE {}{}",
+            if align.is_empty() { "" } else { &align },
+            if largest_ate.is_some() && s.maps > 1 {
+                " all maps"
+            } else {
+                ""
+            }
+        )
+        .trim_end(),
         match get("/ate/stats/rmse") {
             Some(r) => format!(
                 "{:.4} m ({} poses)",

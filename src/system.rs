@@ -644,11 +644,36 @@ fn evaluate(
         .map(|(p, _)| *p)
         .collect();
     let largest_map_coverage = eval::coverage(&eligible, &largest_est, 0.02);
+    // Recovery as the robustness benchmark judges it: of the frames delivered (false frames
+    // excluded: nothing should pose them), those the final largest map holds within
+    // ACCURATE_M of the truth after aligning that map alone.
+    let faults: std::collections::BTreeSet<usize> = plan.faults.iter().map(|f| f.frame).collect();
+    let delivered: Vec<f64> = plan
+        .delivered
+        .iter()
+        .filter(|i| !faults.contains(i))
+        .filter_map(|&i| stamps.get(i).copied())
+        .collect();
+    let delivered = eval::eligible_stamps(&delivered, &gt, 0.02);
+    let accurate: Vec<StampedPose> = largest_map
+        .map(|m| {
+            m.accurate
+                .iter()
+                .map(|&t| StampedPose {
+                    t,
+                    pose: nalgebra::Isometry3::identity(),
+                })
+                .collect()
+        })
+        .unwrap_or_default();
+    let largest_map_accurate_coverage = eval::coverage(&delivered, &accurate, 0.02);
     serde_json::to_value(serde_json::json!({
         "ate": ate,
         "rpe": rpe,
         "coverage": coverage,
         "largest_map_coverage": largest_map_coverage,
+        "largest_map_accurate_coverage": largest_map_accurate_coverage,
+        "delivered_frames_judged": delivered.len(),
         "closures": closures,
         "maps": maps,
         "largest_map": largest_map,

@@ -215,6 +215,90 @@ fn count(
     (visible, search, tracker)
 }
 
+/// A place counts as in view again when a frame after the event finds at least this many
+/// key points of the frames before it by descriptor (≤ 50, within [`SEEN_AGAIN_RADIUS_PX`] of
+/// the ground-truth projection): the evidence a validation needs (`min_inliers`, 30).
+pub const SEEN_AGAIN_MIN_MATCHED: usize = 30;
+/// Search radius of the seen-again probe (level-0 pixels; `bench overlap`'s default).
+pub const SEEN_AGAIN_RADIUS_PX: f64 = 8.0;
+/// The place before an event: the frames of this many seconds before it.
+pub const SEEN_AGAIN_BEFORE_S: f64 = 1.0;
+/// Every this many frames are probed, before and after the event.
+pub const SEEN_AGAIN_EVERY: usize = 3;
+
+/// For each event (first frame of the event, first frame after it: sequence indices), the
+/// first frame after it that sees the place before it again by the ground truth (see
+/// [`SEEN_AGAIN_MIN_MATCHED`]), `None` when no frame to the end of the sequence does. The
+/// sequence is opened once and each probed frame extracted once for all events.
+pub fn seen_again(
+    sequence: &Path,
+    config: Option<&Path>,
+    events: &[(usize, usize)],
+) -> Result<Vec<Option<usize>>> {
+    let (seq, camera, orb) = crate::system::open_run_front_end(sequence, config, false)?;
+    let gt = seq
+        .groundtruth()?
+        .ok_or_else(|| Error::file(sequence, "has no ground truth; the overlap probe needs it"))?;
+    let mut pre = Preprocessor::new(&camera, &orb)?;
+    let k = ImageGeometry::new(
+        camera.intrinsics(),
+        camera.width,
+        camera.height,
+        orb.scale_factor,
+        orb.n_levels,
+    );
+    let mut cache: std::collections::BTreeMap<usize, Option<Probe>> = Default::default();
+    let mut load =
+        |cache: &mut std::collections::BTreeMap<usize, Option<Probe>>, i: usize| -> Result<()> {
+            if cache.contains_key(&i) {
+                return Ok(());
+            }
+            let p = match gt_at(&gt, seq.timestamp(i), MAX_GT_DT) {
+                None => None,
+                Some(pose) => {
+                    let frame = seq.load(i)?;
+                    let m = pre.process(&frame)?;
+                    Some(Probe {
+                        t: frame.t,
+                        m,
+                        depth: frame.depth,
+                        pose,
+                    })
+                }
+            };
+            cache.insert(i, p);
+            Ok(())
+        };
+    let mut out = Vec::with_capacity(events.len());
+    for &(start, end) in events {
+        let t_start = seq.timestamp(start.min(seq.len().saturating_sub(1)));
+        let before: Vec<usize> = (0..start)
+            .filter(|&i| t_start - seq.timestamp(i) <= SEEN_AGAIN_BEFORE_S)
+            .step_by(SEEN_AGAIN_EVERY)
+            .collect();
+        for &i in &before {
+            load(&mut cache, i)?;
+        }
+        let mut found = None;
+        for q in (end..seq.len()).step_by(SEEN_AGAIN_EVERY) {
+            load(&mut cache, q)?;
+            let Some(qp) = &cache[&q] else { continue };
+            let best = before
+                .iter()
+                .filter_map(|i| cache[i].as_ref())
+                .map(|r| count(&k, r, qp, &qp.pose, SEEN_AGAIN_RADIUS_PX, 0).1)
+                .max()
+                .unwrap_or(0);
+            if best >= SEEN_AGAIN_MIN_MATCHED {
+                found = Some(q);
+                break;
+            }
+        }
+        out.push(found);
+    }
+    Ok(out)
+}
+
 impl OverlapReport {
     /// The rows as a Markdown table, with the command that produced them.
     pub fn markdown(&self, command: &str) -> String {

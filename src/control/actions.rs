@@ -5,9 +5,9 @@
 use super::StateMachine;
 use super::spec::{Acceptance, Activity, LoopScope, State};
 use crate::atlas::{Atlas, ClosureEdge, MapId, PoolId, PoolKind};
-use crate::loop_detector::Neighbourhood;
 use crate::geometry::Sim3;
 use crate::global_optimizer::{self, GlobalReport};
+use crate::loop_detector::Neighbourhood;
 use crate::loop_validator::{
     self, Accepted, Agreement, Query, Verdict, relative, relative_information,
 };
@@ -681,11 +681,11 @@ impl StateMachine {
         } else {
             det.candidates.iter().take(CANDIDATES_PER_QUERY).collect()
         };
-        let lost = self.lost_place_candidate(m, cur);
-        if let Some(c) = &lost
-            && !candidates.iter().any(|d| d.image == c.image)
-        {
-            candidates.push(c);
+        let lost = self.lost_place_candidates(m, cur);
+        for c in &lost {
+            if !candidates.iter().any(|d| d.image == c.image) {
+                candidates.push(c);
+            }
         }
         for c in candidates {
             let Some(match_map) = self.atlas.map_of_keyframe(c.image as KfId) else {
@@ -708,7 +708,7 @@ impl StateMachine {
                 &self.atlas.maps[&match_map],
                 c,
             );
-            let from_lost_place = lost.as_ref().is_some_and(|l| std::ptr::eq(c, l));
+            let from_lost_place = lost.iter().any(|l| std::ptr::eq(c, l));
             // Proposed without the detector's evidence, the lost place must show it in
             // geometry: a weak pose would make a weak pool, whose merge check then fails.
             if from_lost_place
@@ -757,14 +757,15 @@ impl StateMachine {
     /// a candidate: after a short gap the camera is most likely still near it, but a view a
     /// few decimetres and degrees away gets too few of the detector's tight votes to be
     /// proposed. The validator, the pool and the merge depth check judge it like any other.
-    fn lost_place_candidate(
-        &self,
-        m: &Measurement,
-        cur: MapId,
-    ) -> Option<loop_validator::Candidate> {
-        let lp = self.lost_place.as_ref()?;
+    /// With bag-of-words place recognition every keyframe gets a score, and on blurred
+    /// hand-held frames the best-scored lost keyframe is often not the nearest: the keyframe
+    /// tracked last is then a candidate too (first).
+    fn lost_place_candidates(&self, m: &Measurement, cur: MapId) -> Vec<loop_validator::Candidate> {
+        let Some(lp) = self.lost_place.as_ref() else {
+            return Vec::new();
+        };
         if lp.new_map != cur || m.t - lp.lost_t > LOST_PLACE_WINDOW_S {
-            return None;
+            return Vec::new();
         }
         let kfs: BTreeSet<KfId> = lp
             .keyframes
@@ -775,21 +776,24 @@ impl StateMachine {
                     && self.atlas.map_of_keyframe(*k).is_some_and(|mm| mm != cur)
             })
             .collect();
-        let first = *lp.keyframes.iter().find(|k| kfs.contains(k))?;
+        let Some(&first) = lp.keyframes.iter().find(|k| kfs.contains(k)) else {
+            return Vec::new();
+        };
         let det = self
             .detector
             .detect(&m.descriptors, |img| !kfs.contains(&(img as KfId)));
-        Some(
-            det.candidates
-                .into_iter()
-                .chain(det.near_misses)
-                .next()
-                .unwrap_or(loop_validator::Candidate {
-                    image: first as u64,
-                    score: 0.0,
-                    matches: Vec::new(),
-                }),
-        )
+        let last_tracked = loop_validator::Candidate {
+            image: first as u64,
+            score: 0.0,
+            matches: Vec::new(),
+        };
+        let best = det.candidates.into_iter().chain(det.near_misses).next();
+        if !self.detector.is_bow() {
+            return vec![best.unwrap_or(last_tracked)];
+        }
+        let mut out = vec![last_tracked];
+        out.extend(best.filter(|b| b.image != first as u64));
+        out
     }
 
     /// Logs a validator verdict and offers a valid candidate to its pool. Returns true when a

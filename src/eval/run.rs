@@ -150,6 +150,10 @@ pub fn check_closures(
     c
 }
 
+/// A posed frame counts as recovered only this close to the truth after its map's alignment:
+/// coverage won by a wrong merge does not count.
+pub const ACCURATE_M: f64 = 0.10;
+
 /// ATE of one map's frames.
 #[derive(Debug, Clone, Serialize)]
 pub struct MapAte {
@@ -158,6 +162,9 @@ pub struct MapAte {
     pub ate_rmse_m: Option<f64>,
     /// Scale of the map's alignment to the ground truth (metres per map unit; 1 for SE3).
     pub scale: Option<f64>,
+    /// Stamps of the map's poses within [`ACCURATE_M`] of the truth after its own alignment.
+    #[serde(skip)]
+    pub accurate: Vec<f64>,
 }
 
 /// ATE per map (each map aligned on its own: the maps are disconnected frames) and the id of
@@ -186,11 +193,21 @@ pub fn per_map_ate(
         let aligned = (poses.len() >= 3)
             .then(|| associate_and_align(gt, poses, align, max_dt).ok())
             .flatten();
+        let a = aligned.as_ref().map(|a| ate(a, align));
         out.push(MapAte {
             map: *m,
             poses: poses.len(),
-            ate_rmse_m: aligned.as_ref().map(|a| ate(a, align).stats.rmse),
+            ate_rmse_m: a.as_ref().map(|a| a.stats.rmse),
             scale: aligned.as_ref().map(|a| a.alignment.scale),
+            accurate: a
+                .map(|a| {
+                    a.errors
+                        .iter()
+                        .filter(|e| e.1 <= ACCURATE_M)
+                        .map(|e| e.0)
+                        .collect()
+                })
+                .unwrap_or_default(),
         });
     }
     let largest = out

@@ -355,7 +355,8 @@ fn bow_detect(
         e.0 = e.0.max(acc);
     }
     let best_acc = groups.values().map(|g| g.0).fold(0.0, f64::max);
-    let mut ranked: Vec<(f64, u64, f64)> = groups.into_iter().map(|(i, (a, s))| (a, i, s)).collect();
+    let mut ranked: Vec<(f64, u64, f64)> =
+        groups.into_iter().map(|(i, (a, s))| (a, i, s)).collect();
     ranked.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
     let mut candidates = Vec::new();
     let mut near_misses = Vec::new();

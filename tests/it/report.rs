@@ -68,6 +68,11 @@ fn report_of_a_small_synthetic_run() {
     })
     .unwrap();
     let table = results_table(&summary);
+    // The largest map leads the table (its ATE and share of the frames).
+    assert!(
+        table.trim_start().starts_with("largest map"),
+        "largest map does not lead\n{table}"
+    );
     for k in [
         "ATE RMSE",
         "RPE 1 s",

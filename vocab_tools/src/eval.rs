@@ -15,10 +15,10 @@
 
 use crate::descfile::DescriptorFile;
 use homing::io::tum::{associate_nearest, read_trajectory};
+use homing::loop_detector::vocabulary::{BowDatabase, BowVector, Vocabulary, score as bow_score};
 use homing::loop_detector::{
     BruteForce, DescriptorIndex, Detection, Hbst, LoopDetector, LoopDetectorParams,
 };
-use homing::loop_detector::vocabulary::{BowDatabase, BowVector, Vocabulary, score as bow_score};
 use homing::output::Timing;
 use homing::preprocess::Descriptor;
 use homing::{Error, Result};
@@ -175,7 +175,10 @@ pub struct EvalReport {
 /// Distance (m) and angle (degrees) between two camera-to-world poses.
 pub fn pose_gap(a: &Isometry3<f64>, b: &Isometry3<f64>) -> (f64, f64) {
     let rel = a.inverse() * b;
-    (rel.translation.vector.norm(), rel.rotation.angle().to_degrees())
+    (
+        rel.translation.vector.norm(),
+        rel.rotation.angle().to_degrees(),
+    )
 }
 
 /// Whether two camera-to-world poses show the same place.
@@ -231,14 +234,19 @@ fn run_bow_query(
     let t0 = Instant::now();
     let gap = o.min_gap as u64;
     let scores = db.query(&vecs[i], |j| j + gap <= i as u64);
-    let norm = if i > 0 { bow_score(&vecs[i], &vecs[i - 1]) } else { 0.0 };
+    let norm = if i > 0 {
+        bow_score(&vecs[i], &vecs[i - 1])
+    } else {
+        0.0
+    };
     let rel = |s: f64| if norm > 0.0 { s / norm } else { 0.0 };
     let best = scores
         .iter()
         .max_by(|a, b| a.1.total_cmp(&b.1).then(b.0.cmp(&a.0)))
         .map(|&(j, sc, n)| (j as usize, rel(sc), n as usize));
     // Group: accumulate over stored neighbours within ±BOW_GROUP frames.
-    let by: std::collections::BTreeMap<u64, f64> = scores.iter().map(|&(j, sc, _)| (j, sc)).collect();
+    let by: std::collections::BTreeMap<u64, f64> =
+        scores.iter().map(|&(j, sc, _)| (j, sc)).collect();
     let mut group_best: Option<(usize, f64, usize)> = None;
     let mut best_acc = 0.0;
     for &(j, _, _) in &scores {
@@ -259,7 +267,12 @@ fn run_bow_query(
     let mk = |best: Option<(usize, f64, usize)>| Answer {
         best,
         correct: best.map(|(j, _, _)| {
-            same_place(&frames[i].pose, &frames[j].pose, o.max_distance_m, o.max_angle_deg)
+            same_place(
+                &frames[i].pose,
+                &frames[j].pose,
+                o.max_distance_m,
+                o.max_angle_deg,
+            )
         }),
         error: best.map(|(j, _, _)| pose_gap(&frames[i].pose, &frames[j].pose)),
         raw_matches: scores.len(),
@@ -434,7 +447,13 @@ pub fn evaluate(frames: &[EvalFrame], o: &EvalOptions) -> EvalReport {
         .is_some()
         .then(|| method_report("bow", &records, |r| r.bow.as_ref(), positives, &bow_o));
     let bow_group_report = o.vocabulary.is_some().then(|| {
-        method_report("bow-group", &records, |r| r.bow_group.as_ref(), positives, &bow_o)
+        method_report(
+            "bow-group",
+            &records,
+            |r| r.bow_group.as_ref(),
+            positives,
+            &bow_o,
+        )
     });
     let (mut raw_h, mut raw_b) = (0usize, 0usize);
     let mut per_query = Vec::new();

@@ -34,7 +34,9 @@ pub fn image_files(dirs: &[PathBuf]) -> Result<Vec<PathBuf>> {
         }
         let rd = std::fs::read_dir(&d).map_err(|e| Error::file(&d, format!("cannot list: {e}")))?;
         for e in rd {
-            let p = e.map_err(|e| Error::file(&d, format!("cannot list: {e}")))?.path();
+            let p = e
+                .map_err(|e| Error::file(&d, format!("cannot list: {e}")))?
+                .path();
             if p.is_dir() {
                 stack.push(p);
             } else if p
