@@ -220,9 +220,11 @@ impl Default for MappingConfig {
 #[serde(deny_unknown_fields, default)]
 pub struct LoopClosingConfig {
     pub enabled: bool,
-    /// Which index proposes closure candidates: `bow` (a bag-of-words vocabulary, ORB-SLAM's
-    /// scheme) or `hbst` (the paper's descriptor tree; its votes need descriptors within
-    /// `hbst_max_distance`, which real revisits from another viewpoint rarely give).
+    /// Which index proposes closure candidates: `hbst` (the paper's descriptor tree, the
+    /// default; its votes need descriptors within `hbst_max_distance`, which real revisits
+    /// from another viewpoint rarely give) or `bow` (a bag-of-words vocabulary, ORB-SLAM's
+    /// scheme; with `configs/real-handheld.toml`, see
+    /// docs/decisions/0001-bag-of-words-place-recognition.md for why it is not the default).
     pub place_recognition: PlaceRecognition,
     /// Vocabulary file for `bow` (from `vocab-tools train`); none: the built-in one.
     pub vocabulary: Option<std::path::PathBuf>,
@@ -241,10 +243,14 @@ pub struct LoopClosingConfig {
     /// `hbst`: fewest detector votes for a candidate.
     pub min_matches: u32,
     /// Fewest descriptor correspondences (query key point ↔ candidate keyframe's map point,
-    /// Hamming ≤ 50) before the validator's RANSAC (ORB-SLAM's relocalization: 15). Real revisits
-    /// from a few decimetres and 10–30° away give 15–40; the RANSAC, the projection search of
-    /// the keyframe's local map and `min_inliers` then decide.
+    /// Hamming ≤ 50) before the validator's RANSAC. Real revisits from a few decimetres and
+    /// 10–30° away give 15–40 (ORB-SLAM's relocalization needs 15); the RANSAC, the projection
+    /// search of the keyframe's local map and `min_inliers` then decide.
     pub min_validation_matches: u32,
+    /// A loop within one map is refused when its correction exceeds this many σ of the
+    /// odometry's drift along the path since the matched keyframe (the pose graph's
+    /// `odometry_sigma*` model; `loop_validator::implausible_drift`). 0: off.
+    pub drift_gate_sigmas: f64,
     /// Lowest loop-detector score (voting query descriptors / query descriptors).
     pub min_score: f64,
     /// Ratio test of the loop detector: a match is kept only when its distance is below this
@@ -309,7 +315,7 @@ impl Default for LoopClosingConfig {
     fn default() -> Self {
         Self {
             enabled: true,
-            place_recognition: PlaceRecognition::Bow,
+            place_recognition: PlaceRecognition::Hbst,
             vocabulary: None,
             bow_group_size: 10,
             bow_group_ratio: 0.75,
@@ -318,7 +324,8 @@ impl Default for LoopClosingConfig {
             hbst_max_split_imbalance: 0.45,
             temporal_window: 20,
             min_matches: 40,
-            min_validation_matches: 15,
+            min_validation_matches: 40,
+            drift_gate_sigmas: 0.0,
             min_score: 0.05,
             ambiguity_ratio: 0.9,
             self_similarity_filter: false,
@@ -354,8 +361,8 @@ impl Default for LoopClosingConfig {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "lowercase")]
 pub enum PlaceRecognition {
-    #[default]
     Bow,
+    #[default]
     Hbst,
 }
 
@@ -692,6 +699,12 @@ impl Config {
             1000.0,
         );
         c.range("loop_closing.bow_group_ratio", l.bow_group_ratio, 0.0, 1.0);
+        c.range(
+            "loop_closing.drift_gate_sigmas",
+            l.drift_gate_sigmas,
+            0.0,
+            100.0,
+        );
         if c.first.is_none()
             && let Some(v) = &l.vocabulary
             && let Err(e) = crate::loop_detector::vocabulary::shared(Some(v))

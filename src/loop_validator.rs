@@ -47,6 +47,9 @@ pub enum Rejection {
     /// Monocular: too few inliers carry a point of the query's map to measure the scale.
     Scale,
     RolledBackAlignment,
+    /// A loop within one map that would move the camera farther than the odometry could
+    /// have drifted along the path since the matched keyframe ([`implausible_drift`]).
+    ImplausibleDrift,
 }
 
 impl Rejection {
@@ -57,6 +60,7 @@ impl Rejection {
             Self::Refinement => "rejected:refinement",
             Self::Scale => "rejected:scale",
             Self::RolledBackAlignment => "rejected:rolled-back-alignment",
+            Self::ImplausibleDrift => "rejected:implausible-drift",
         }
     }
 }
@@ -400,6 +404,40 @@ pub fn validate_from_query_depth(
         information,
         ..Valid::of_query(q, map.id, matched, pose)
     }))
+}
+
+/// A loop within one map says where the camera is in that map; its map says where tracking put
+/// it. The difference is the drift the loop corrects, and odometry can only have drifted so far
+/// along the path from the matched keyframe: the pose graph's own model, σ = odometry_sigma +
+/// odometry_sigma_per_m · path length (metres; degrees likewise). A correction beyond
+/// `drift_gate_sigmas` σ is a look-alike place, not drift (a copy of a room several metres
+/// away), and pooling it would only leave the consistency check to undo it, with the keyframes
+/// made since. Returns (correction m, correction °, path m) when the loop is implausible.
+/// Only for a map with metric scale (`v.scale` 1) and a loop within it.
+pub fn implausible_drift(cfg: &LoopClosingConfig, map: &Map, v: &Valid) -> Option<(f64, f64, f64)> {
+    let gate = cfg.drift_gate_sigmas;
+    if gate <= 0.0 || v.query_map != v.match_map || v.scale != 1.0 {
+        return None;
+    }
+    let matched_t = map.keyframes.get(&v.matched)?.t;
+    let centre = |p: &Isometry3<f64>| p.inverse().translation.vector;
+    // The path: keyframes from the matched one on, in time order, then the query camera.
+    let mut kfs: Vec<(f64, Vector3<f64>)> = map
+        .keyframes
+        .values()
+        .filter(|k| k.t >= matched_t && k.t <= v.t)
+        .map(|k| (k.t, centre(&k.pose_cw)))
+        .collect();
+    kfs.sort_by(|a, b| a.0.total_cmp(&b.0));
+    kfs.push((v.t, centre(&v.query_pose)));
+    let path: f64 = kfs.windows(2).map(|w| (w[1].1 - w[0].1).norm()).sum();
+    let moved = (centre(&v.query_pose) - centre(&v.pose_in_match)).norm();
+    let turned = (v.query_pose.rotation * v.pose_in_match.rotation.inverse())
+        .angle()
+        .to_degrees();
+    let max_m = gate * (cfg.odometry_sigma_m + cfg.odometry_sigma_per_m * path);
+    let max_deg = gate * (cfg.odometry_sigma_deg + cfg.odometry_sigma_deg_per_m * path);
+    (moved > max_m || turned > max_deg).then_some((moved, turned, path))
 }
 
 /// Largest Hamming distance of a descriptor-search match (ORB-SLAM's TH_LOW).
