@@ -72,6 +72,33 @@ struct Probe {
     pose: Isometry3<f64>,
 }
 
+/// Frame `i` with its features and ground-truth pose; `None` without ground truth near it.
+fn probe_frame(
+    seq: &crate::io::Sequence,
+    pre: &mut Preprocessor,
+    gt: &[crate::io::tum::StampedPose],
+    i: usize,
+    sequence: &Path,
+) -> Result<Option<Probe>> {
+    let Some(pose) = gt_at(gt, seq.timestamp(i), MAX_GT_DT) else {
+        return Ok(None);
+    };
+    let frame = seq.load(i)?;
+    if frame.depth.is_none() {
+        return Err(Error::file(
+            sequence,
+            "is read without depth (a monocular config?); the overlap probe needs depth",
+        ));
+    }
+    let m = pre.process(&frame)?;
+    Ok(Some(Probe {
+        t: frame.t,
+        m,
+        depth: frame.depth,
+        pose,
+    }))
+}
+
 /// The probe's result: per query frame, its best reference frame.
 #[derive(Debug, Clone, PartialEq)]
 pub struct OverlapReport {
@@ -105,23 +132,10 @@ pub fn overlap(
             .step_by(opts.every.max(1))
             .collect();
         for i in idx {
-            let Some(pose) = gt_at(&gt, seq.timestamp(i), MAX_GT_DT) else {
-                continue;
-            };
-            let frame = seq.load(i)?;
-            if frame.depth.is_none() {
-                return Err(Error::file(
-                    sequence,
-                    "is read without depth (a monocular config?); the overlap probe needs depth",
-                ));
+            if let Some(mut p) = probe_frame(&seq, &mut pre, &gt, i, sequence)? {
+                p.t -= t0;
+                out.push(p);
             }
-            let m = pre.process(&frame)?;
-            out.push(Probe {
-                t: frame.t - t0,
-                m,
-                depth: frame.depth,
-                pose,
-            });
         }
         if out.is_empty() {
             return Err(Error::file(
@@ -250,23 +264,10 @@ pub fn seen_again(
     let mut cache: std::collections::BTreeMap<usize, Option<Probe>> = Default::default();
     let mut load =
         |cache: &mut std::collections::BTreeMap<usize, Option<Probe>>, i: usize| -> Result<()> {
-            if cache.contains_key(&i) {
-                return Ok(());
+            if !cache.contains_key(&i) {
+                let p = probe_frame(&seq, &mut pre, &gt, i, sequence)?;
+                cache.insert(i, p);
             }
-            let p = match gt_at(&gt, seq.timestamp(i), MAX_GT_DT) {
-                None => None,
-                Some(pose) => {
-                    let frame = seq.load(i)?;
-                    let m = pre.process(&frame)?;
-                    Some(Probe {
-                        t: frame.t,
-                        m,
-                        depth: frame.depth,
-                        pose,
-                    })
-                }
-            };
-            cache.insert(i, p);
             Ok(())
         };
     let mut out = Vec::with_capacity(events.len());

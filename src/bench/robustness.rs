@@ -1525,6 +1525,36 @@ mod tests {
     }
 
     #[test]
+    fn merge_latency_counts_from_the_re_acquisition_to_the_joining_pool() {
+        // Frames 8..12 dropped; 12 is not posed, 13.. are (a new map, later joined).
+        let delivered: Vec<(usize, bool)> = (0..20)
+            .filter(|f| !(8..12).contains(f))
+            .map(|f| (f, f != 12))
+            .collect();
+        let dropped = [(8, 12)];
+        let rec = recovery(&delivered, &dropped, &[]);
+        assert_eq!(rec, [Some(1)]);
+        let joined: BTreeMap<usize, u32> =
+            delivered.iter().filter(|d| d.1).map(|d| (d.0, 0)).collect();
+        // A relocalization pool accepted at frame 16: frames 13, 14, 15 before it.
+        let (m, ev) = merge_latency(&delivered, &dropped, &[], &rec, &joined, &[5, 16, 18]);
+        assert_eq!(m, [Some(3)]);
+        assert_eq!(ev, [(8, 12, Some(16))]);
+        // No pool after the drop but one map: tracking went on in it.
+        let (m, _) = merge_latency(&delivered, &dropped, &[], &rec, &joined, &[5]);
+        assert_eq!(m, [Some(0)]);
+        // Two maps at the end: never joined.
+        let apart: BTreeMap<usize, u32> = delivered
+            .iter()
+            .filter(|d| d.1)
+            .map(|d| (d.0, u32::from(d.0 > 8)))
+            .collect();
+        let (m, ev) = merge_latency(&delivered, &dropped, &[], &rec, &apart, &[16]);
+        assert_eq!(m, [None]);
+        assert_eq!(ev, [(8, 12, None)]);
+    }
+
+    #[test]
     fn csv_quotes_only_when_needed() {
         assert_eq!(csv_field("a b"), "a b");
         assert_eq!(csv_field("a,b"), "\"a,b\"");

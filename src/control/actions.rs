@@ -538,19 +538,7 @@ impl StateMachine {
             return;
         }
         let aliased = &self.aliased;
-        let det = {
-            let covisible =
-                covisible_in(&self.atlas, self.cfg.loop_closing.bow_group_size as usize);
-            let nb = Neighbourhood {
-                covisible: &covisible,
-                floor: &[],
-            };
-            self.detector.detect_in(
-                &m.descriptors,
-                |img| !old.contains(&(img as KfId)) || aliased.contains(&(img as KfId)),
-                &nb,
-            )
-        };
+        let det = self.detect_frame(m, |k| !old.contains(&k) || aliased.contains(&k));
         for c in det.candidates.iter().take(CANDIDATES_PER_QUERY) {
             let q = Query {
                 m,
@@ -574,6 +562,22 @@ impl StateMachine {
                 break;
             }
         }
+    }
+
+    /// A frame's loop-detector query over the keyframes `exclude` does not reject, scored
+    /// over the atlas' covisibility groups (a frame has no neighbours of its own: no floor).
+    fn detect_frame(
+        &self,
+        m: &Measurement,
+        exclude: impl Fn(KfId) -> bool,
+    ) -> crate::loop_detector::Detection {
+        let covisible = covisible_in(&self.atlas, self.cfg.loop_closing.bow_group_size as usize);
+        let nb = Neighbourhood {
+            covisible: &covisible,
+            floor: &[],
+        };
+        self.detector
+            .detect_in(&m.descriptors, |img| exclude(img as KfId), &nb)
     }
 
     /// Mapping region: the new keyframe queries the loop detector (and is stored in it); the
@@ -642,19 +646,7 @@ impl StateMachine {
         let Some(cur) = self.current else { return };
         let own: BTreeSet<KfId> = self.atlas.maps[&cur].keyframes.keys().copied().collect();
         let aliased = &self.aliased;
-        let det = {
-            let covisible =
-                covisible_in(&self.atlas, self.cfg.loop_closing.bow_group_size as usize);
-            let nb = Neighbourhood {
-                covisible: &covisible,
-                floor: &[],
-            };
-            self.detector.detect_in(
-                &m.descriptors,
-                |img| own.contains(&(img as KfId)) || aliased.contains(&(img as KfId)),
-                &nb,
-            )
-        };
+        let det = self.detect_frame(m, |k| own.contains(&k) || aliased.contains(&k));
         tracing::trace!(
             "frame {}: relocalization query: {:?}, near misses (keyframe, votes) {:?}",
             m.frame,

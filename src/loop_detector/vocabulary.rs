@@ -117,15 +117,7 @@ impl Vocabulary {
             return Err(Error::invalid("no descriptors to train a vocabulary on"));
         }
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        let mut v = Vocabulary {
-            k,
-            levels,
-            parent: vec![NO_PARENT],
-            centre: vec![[0; 32]],
-            children: vec![Vec::new()],
-            word: vec![u32::MAX],
-            idf: Vec::new(),
-        };
+        let mut v = Vocabulary::root(k, levels);
         // Depth-first, so that a node's subtree is contiguous; (node, depth, members).
         let mut stack: Vec<(u32, u32, Vec<u32>)> = vec![(0, 0, (0..all.len() as u32).collect())];
         while let Some((node, depth, members)) = stack.pop() {
@@ -167,6 +159,19 @@ impl Vocabulary {
             .map(|&c| (n / c.max(1) as f64).ln() as f32)
             .collect();
         Ok(v)
+    }
+
+    /// A tree of only its root, to grow.
+    fn root(k: u32, levels: u32) -> Self {
+        Vocabulary {
+            k,
+            levels,
+            parent: vec![NO_PARENT],
+            centre: vec![[0; 32]],
+            children: vec![Vec::new()],
+            word: vec![u32::MAX],
+            idf: Vec::new(),
+        }
     }
 
     /// The word of one descriptor: the nearest child at every level, root to leaf.
@@ -249,15 +254,7 @@ impl Vocabulary {
         if n == 0 || payload.len() != 20 + (n - 1) * NODE {
             return Err(bad(format!("{n} nodes do not fit {} bytes", payload.len())));
         }
-        let mut v = Vocabulary {
-            k,
-            levels,
-            parent: vec![NO_PARENT],
-            centre: vec![[0; 32]],
-            children: vec![Vec::new()],
-            word: vec![u32::MAX],
-            idf: Vec::new(),
-        };
+        let mut v = Vocabulary::root(k, levels);
         for i in 1..n {
             let o = 20 + (i - 1) * NODE;
             let p = u32_at(o);

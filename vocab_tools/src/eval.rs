@@ -527,6 +527,30 @@ fn fmt_opt(v: Option<f64>) -> String {
     v.map_or("-".into(), |x| format!("{x:.3}"))
 }
 
+/// The sweep as text: a threshold per row, precision / recall (predictions) per method.
+fn sweep_table(o: &mut String, threshold: &str, methods: &[&MethodReport]) {
+    let _ = write!(o, "  {threshold:>9}");
+    for m in methods {
+        let _ = write!(o, " | {:^24}", m.name);
+    }
+    o.push('\n');
+    let Some(first) = methods.first() else { return };
+    for (k, th) in first.sweep.iter().map(|p| p.min_score).enumerate() {
+        let _ = write!(o, "  {th:>9.3}");
+        for m in methods {
+            let p = &m.sweep[k];
+            let _ = write!(
+                o,
+                " | {:>5} / {:>5}  ({:>4} pred)",
+                fmt_opt(p.precision),
+                fmt_opt(p.recall),
+                p.predictions
+            );
+        }
+        o.push('\n');
+    }
+}
+
 impl EvalReport {
     pub fn to_text(&self) -> String {
         let mut o = String::new();
@@ -570,25 +594,7 @@ impl EvalReport {
             o,
             "\nscore sweep (best candidate with score ≥ threshold), precision / recall:"
         );
-        let _ = write!(o, "  {:>9}", "min_score");
-        for m in &methods {
-            let _ = write!(o, " | {:^24}", m.name);
-        }
-        o.push('\n');
-        for (k, &th) in self.hbst.sweep.iter().map(|p| &p.min_score).enumerate() {
-            let _ = write!(o, "  {th:>9.3}");
-            for m in &methods {
-                let p = &m.sweep[k];
-                let _ = write!(
-                    o,
-                    " | {:>5} / {:>5}  ({:>4} pred)",
-                    fmt_opt(p.precision),
-                    fmt_opt(p.recall),
-                    p.predictions
-                );
-            }
-            o.push('\n');
-        }
+        sweep_table(&mut o, "min_score", &methods);
         if !bows.is_empty() {
             let _ = writeln!(
                 o,
@@ -608,25 +614,7 @@ impl EvalReport {
                     fmt_opt(p.recall)
                 );
             }
-            let _ = write!(o, "  {:>9}", "rel_score");
-            for m in &bows {
-                let _ = write!(o, " | {:^24}", m.name);
-            }
-            o.push('\n');
-            for (k, &th) in bows[0].sweep.iter().map(|p| &p.min_score).enumerate() {
-                let _ = write!(o, "  {th:>9.3}");
-                for m in &bows {
-                    let p = &m.sweep[k];
-                    let _ = write!(
-                        o,
-                        " | {:>5} / {:>5}  ({:>4} pred)",
-                        fmt_opt(p.precision),
-                        fmt_opt(p.recall),
-                        p.predictions
-                    );
-                }
-                o.push('\n');
-            }
+            sweep_table(&mut o, "rel_score", &bows);
             if let Some(t) = bows[0].time_by_stored.last() {
                 let _ = writeln!(
                     o,
