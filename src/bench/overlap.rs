@@ -264,9 +264,8 @@ pub fn seen_again(
     let mut cache: std::collections::BTreeMap<usize, Option<Probe>> = Default::default();
     let mut load =
         |cache: &mut std::collections::BTreeMap<usize, Option<Probe>>, i: usize| -> Result<()> {
-            if !cache.contains_key(&i) {
-                let p = probe_frame(&seq, &mut pre, &gt, i, sequence)?;
-                cache.insert(i, p);
+            if let std::collections::btree_map::Entry::Vacant(e) = cache.entry(i) {
+                e.insert(probe_frame(&seq, &mut pre, &gt, i, sequence)?);
             }
             Ok(())
         };

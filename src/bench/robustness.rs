@@ -273,7 +273,7 @@ pub struct Row {
     /// Per event: (its first frame, the first delivered frame after it, the frame of the merge
     /// counted by `merge_frames`), sequence indices.
     #[serde(skip)]
-    pub events: Vec<(usize, usize, Option<usize>)>,
+    pub events: Vec<EventSpan>,
     pub final_state: String,
     pub wall_s: f64,
     pub fps: f64,
@@ -867,6 +867,10 @@ fn read_run(dir: &Path, row: &mut Row) -> Result<()> {
     Ok(())
 }
 
+/// An event's first frame, the first delivered frame after it, and the frame of the merge that
+/// joined the map before it (sequence indices; `None`: never joined).
+pub type EventSpan = (usize, usize, Option<usize>);
+
 /// Per event (as [`recovery`] finds them, in its order): delivered frames from the first posed
 /// frame after the event to the merge that joined the map before it, and the event's
 /// (first frame, first delivered frame after it, merge frame). The map before the event is the
@@ -880,7 +884,7 @@ pub fn merge_latency(
     recovered: &[Option<usize>],
     final_map: &std::collections::BTreeMap<usize, u32>,
     merges: &[usize],
-) -> (Vec<Option<usize>>, Vec<(usize, usize, Option<usize>)>) {
+) -> (Vec<Option<usize>>, Vec<EventSpan>) {
     let is_fault = |f: usize| faults.binary_search(&f).is_ok();
     // Event starts and ends (position of the first delivered frame after), as `recovery`.
     let mut events: Vec<(usize, usize)> = Vec::new();

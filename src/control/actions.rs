@@ -1968,6 +1968,20 @@ fn keyframe_shares(
         .map(|&(kf, judged, n)| (n as f64 / judged as f64, kf))
 }
 
+/// The best covisible keyframes of a keyframe, wherever it is in the atlas: the groups that
+/// bag-of-words place recognition accumulates scores over.
+fn covisible_in(atlas: &Atlas, n: usize) -> impl Fn(u64) -> Vec<u64> + '_ {
+    move |img| {
+        let k = img as KfId;
+        atlas
+            .maps
+            .values()
+            .find_map(|m| m.keyframes.get(&k))
+            .map(|kf| kf.best_covisible(n).into_iter().map(|c| c as u64).collect())
+            .unwrap_or_default()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::FrameObservations;
@@ -2016,19 +2030,5 @@ mod tests {
         assert_eq!(localized_inlier_floor(true, 50, 230), 115);
         assert_eq!(localized_inlier_floor(true, 50, 60), 50);
         assert_eq!(localized_inlier_floor(false, 50, 230), 50);
-    }
-}
-
-/// The best covisible keyframes of a keyframe, wherever it is in the atlas: the groups that
-/// bag-of-words place recognition accumulates scores over.
-fn covisible_in(atlas: &Atlas, n: usize) -> impl Fn(u64) -> Vec<u64> + '_ {
-    move |img| {
-        let k = img as KfId;
-        atlas
-            .maps
-            .values()
-            .find_map(|m| m.keyframes.get(&k))
-            .map(|kf| kf.best_covisible(n).into_iter().map(|c| c as u64).collect())
-            .unwrap_or_default()
     }
 }

@@ -9,6 +9,12 @@
 //! - optionally *self-similar* descriptors (repetitive texture, generic corners): those with
 //!   many near-duplicates inside their own image, or that match many different images.
 //!
+//! With `place_recognition = "bow"` a bag-of-words database ([`vocabulary`]) replaces the
+//! index and its votes: images are scored by shared visual words, accumulated over
+//! covisibility groups ([`Neighbourhood`]), and candidates carry no descriptor matches (the
+//! validator finds its own). Real revisits from another viewpoint change descriptors beyond
+//! the HBST's match distance; words tolerate that.
+//!
 //! The detector only proposes; which keyframes may be candidates (temporal window, map
 //! membership) is the caller's rule, passed as a predicate, and geometric validation is the
 //! loop validator's job. Nothing here decides modal behaviour.
