@@ -810,30 +810,29 @@ impl StateMachine {
                 } else {
                     self.reloc_pool.is_refused(&v, &same)
                 };
-                if !self.mono
-                    && let Some(map) = self.atlas.maps.get(&v.query_map)
-                    && let Some((moved, turned, path)) =
+                let drift = if self.mono {
+                    None
+                } else {
+                    self.atlas.maps.get(&v.query_map).and_then(|map| {
                         loop_validator::implausible_drift(&self.cfg.loop_closing, map, &v)
-                {
+                    })
+                };
+                if let Some((moved, turned, path)) = drift {
                     tracing::debug!(
                         "frame {}: loop to keyframe {} would move the camera {moved:.2} m / \
                          {turned:.1}° after {path:.2} m of path: not drift",
                         m.frame,
                         v.matched
                     );
-                    let r = loop_validator::Rejection::ImplausibleDrift;
-                    self.log_closure(
-                        m,
-                        kind,
-                        v.matched,
-                        v.n_inliers,
-                        Some(v.pose_in_match),
-                        r.as_str(),
-                    );
-                    return false;
                 }
-                if refused {
-                    let r = loop_validator::Rejection::RolledBackAlignment;
+                let rejection = if drift.is_some() {
+                    Some(loop_validator::Rejection::ImplausibleDrift)
+                } else if refused {
+                    Some(loop_validator::Rejection::RolledBackAlignment)
+                } else {
+                    None
+                };
+                if let Some(r) = rejection {
                     self.log_closure(
                         m,
                         kind,

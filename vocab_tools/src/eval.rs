@@ -192,18 +192,24 @@ fn answer(d: &Detection, ms: f64, frames: &[EvalFrame], q: usize, o: &EvalOption
         .candidates
         .first()
         .map(|c| (c.image as usize, c.score, c.matches.len()));
+    judged(best, d.report.raw_matches, ms, frames, q, o)
+}
+
+/// Query `q`'s answer `best` (frame, score, votes) judged against the ground truth.
+fn judged(
+    best: Option<(usize, f64, usize)>,
+    raw_matches: usize,
+    ms: f64,
+    frames: &[EvalFrame],
+    q: usize,
+    o: &EvalOptions,
+) -> Answer {
+    let (a, b) = (&frames[q].pose, |j: usize| &frames[j].pose);
     Answer {
         best,
-        correct: best.map(|(j, _, _)| {
-            same_place(
-                &frames[q].pose,
-                &frames[j].pose,
-                o.max_distance_m,
-                o.max_angle_deg,
-            )
-        }),
-        error: best.map(|(j, _, _)| pose_gap(&frames[q].pose, &frames[j].pose)),
-        raw_matches: d.report.raw_matches,
+        correct: best.map(|(j, _, _)| same_place(a, b(j), o.max_distance_m, o.max_angle_deg)),
+        error: best.map(|(j, _, _)| pose_gap(a, b(j))),
+        raw_matches,
         ms,
     }
 }
@@ -264,20 +270,7 @@ fn run_bow_query(
     }
     let ms = t0.elapsed().as_secs_f64() * 1e3;
     db.insert(i as u64, vecs[i].clone());
-    let mk = |best: Option<(usize, f64, usize)>| Answer {
-        best,
-        correct: best.map(|(j, _, _)| {
-            same_place(
-                &frames[i].pose,
-                &frames[j].pose,
-                o.max_distance_m,
-                o.max_angle_deg,
-            )
-        }),
-        error: best.map(|(j, _, _)| pose_gap(&frames[i].pose, &frames[j].pose)),
-        raw_matches: scores.len(),
-        ms,
-    };
+    let mk = |best: Option<(usize, f64, usize)>| judged(best, scores.len(), ms, frames, i, o);
     (mk(best), mk(group_best))
 }
 
