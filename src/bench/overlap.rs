@@ -72,6 +72,17 @@ struct Probe {
     pose: Isometry3<f64>,
 }
 
+/// The image geometry the run uses for this camera and pyramid.
+fn geometry(camera: &crate::config::CameraConfig, orb: &crate::config::OrbConfig) -> ImageGeometry {
+    ImageGeometry::new(
+        camera.intrinsics(),
+        camera.width,
+        camera.height,
+        orb.scale_factor,
+        orb.n_levels,
+    )
+}
+
 /// Frame `i` with its features and ground-truth pose; `None` without ground truth near it.
 fn probe_frame(
     seq: &crate::io::Sequence,
@@ -148,13 +159,7 @@ pub fn overlap(
     let refs = load(opts.reference)?;
     let queries = load(opts.query)?;
     let turn = control_turn();
-    let k = ImageGeometry::new(
-        camera.intrinsics(),
-        camera.width,
-        camera.height,
-        orb.scale_factor,
-        orb.n_levels,
-    );
+    let k = geometry(&camera, &orb);
     let rows = queries
         .iter()
         .map(|q| {
@@ -254,13 +259,7 @@ pub fn seen_again(
         .groundtruth()?
         .ok_or_else(|| Error::file(sequence, "has no ground truth; the overlap probe needs it"))?;
     let mut pre = Preprocessor::new(&camera, &orb)?;
-    let k = ImageGeometry::new(
-        camera.intrinsics(),
-        camera.width,
-        camera.height,
-        orb.scale_factor,
-        orb.n_levels,
-    );
+    let k = geometry(&camera, &orb);
     let mut cache: std::collections::BTreeMap<usize, Option<Probe>> = Default::default();
     let mut load =
         |cache: &mut std::collections::BTreeMap<usize, Option<Probe>>, i: usize| -> Result<()> {
