@@ -499,6 +499,13 @@ fn depth_tolerance(z: f64) -> f64 {
     0.05 + 0.08 * z
 }
 
+/// Whether a rigid correction of `metres` and `radians` moves no point at any depth `z` beyond
+/// [`depth_tolerance`] (it moves a point by at most metres + radians·z): a change the depth
+/// checks cannot see.
+pub fn within_depth_tolerance(metres: f64, radians: f64) -> bool {
+    metres <= depth_tolerance(0.0) && radians <= depth_tolerance(1.0) - depth_tolerance(0.0)
+}
+
 /// Whether one of the depth readings near a point's projection is at its depth `z`
 /// (within [`depth_tolerance`]): the surface is there and nothing hides it.
 fn depth_confirms(depths: &[f64], z: f64) -> bool {

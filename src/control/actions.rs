@@ -448,7 +448,7 @@ impl StateMachine {
             .spec
             .outgoing(State::Core)
             .any(|t| t.to == State::CorruptedMap);
-        if self.mono || !checks || self.undoable_pools_of(cur).is_empty() {
+        if self.mono || !checks || self.blameable_pools_of(cur).is_empty() {
             self.contradicting_keyframes = 0;
             return;
         }
@@ -486,7 +486,7 @@ impl StateMachine {
         // Per standing merge: every keyframe's side of its seam, and `kf`'s; `None`: judge the
         // whole map.
         let seams: Option<Vec<_>> = self
-            .undoable_pools_of(map)
+            .blameable_pools_of(map)
             .into_iter()
             .map(|p| {
                 let (a, b) = self.atlas.pools[p as usize].merge_sides()?;
@@ -509,13 +509,23 @@ impl StateMachine {
         })
     }
 
-    /// Closure pools that touched map `map` and can still be undone, newest first.
-    fn undoable_pools_of(&self, map: MapId) -> Vec<PoolId> {
+    /// Closure pools that touched map `map`, can still be undone and could explain what a
+    /// keyframe's depth check sees, newest first. A loop that moved its camera by less than
+    /// the check's depth tolerance (`global_optimizer::within_depth_tolerance`) moved no point
+    /// far enough to be seen through: a contradiction then is the map's own drift (a loop it
+    /// never closed), which no undo mends (small `aliasing` with bag of words: a right loop
+    /// of 1 cm at the start, blamed for room B's drift 30 s later, cost 39 keyframes).
+    fn blameable_pools_of(&self, map: MapId) -> Vec<PoolId> {
         self.atlas
             .pools
             .iter()
             .rev()
             .filter(|p| p.undoable() && p.maps().contains(&map))
+            .filter(|p| {
+                self.atlas.loop_jump(p.id).is_none_or(|(metres, degrees)| {
+                    !global_optimizer::within_depth_tolerance(metres, degrees.to_radians())
+                })
+            })
             .map(|p| p.id)
             .collect()
     }
@@ -1545,7 +1555,7 @@ impl StateMachine {
     fn recover_from_keyframe(&mut self, map: MapId, kf: KfId) -> bool {
         let c = &self.cfg.controller;
         let (min_judged, max_share) = (c.min_expected_cells as usize, c.max_contradiction);
-        for p in self.undoable_pools_of(map) {
+        for p in self.blameable_pools_of(map) {
             if !self.undo_pool(p) {
                 continue;
             }
