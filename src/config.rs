@@ -190,6 +190,10 @@ pub struct MappingConfig {
     /// ... and also pairs without three wide planes, registered on local planes alone. Off:
     /// on real depth of a desk scene it made wrong edges (see the module's doc).
     pub final_depth_edges_local_planes: bool,
+    /// After a user stop (SIGINT/SIGTERM), Final's refinement gets at most this many seconds:
+    /// maps not refined by then keep their tracked poses (0 = no refinement). The end of the
+    /// data is never limited.
+    pub final_refinement_max_s: f64,
     /// RGB-D: also triangulate the new keyframe's unmatched key points with those of its
     /// covisible keyframes, as ORB-SLAM2's `CreateNewMapPoints` does for RGB-D, so the map
     /// holds points where the sensor has no depth (far walls, a room seen through its door).
@@ -210,6 +214,7 @@ impl Default for MappingConfig {
             final_ba_frame_interval_s: 0.2,
             final_depth_edges: true,
             final_depth_edges_local_planes: false,
+            final_refinement_max_s: 30.0,
             triangulate_points: false,
         }
     }
@@ -653,6 +658,12 @@ impl Config {
             m.final_ba_frame_interval_s,
             0.0,
             3600.0,
+        );
+        c.range(
+            "mapping.final_refinement_max_s",
+            m.final_refinement_max_s,
+            0.0,
+            86400.0,
         );
         let l = &self.loop_closing;
         c.range(

@@ -16,6 +16,7 @@ pub mod eval;
 pub mod geometry;
 pub mod global_optimizer;
 pub mod initializer;
+pub mod interrupt;
 pub mod loop_detector;
 pub mod loop_validator;
 pub mod map;

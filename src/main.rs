@@ -500,6 +500,8 @@ fn main() {
 }
 
 fn cmd_run(a: RunArgs, quiet: bool) -> Result<()> {
+    // Ctrl-C / SIGTERM: the Interruptible state's user stop, not the end of the process.
+    homing::interrupt::install()?;
     let mcap = a.mcap.map(|bag| {
         let topics = homing::io::mcap::McapTopics {
             image: a.image_topic.unwrap_or_default(),
@@ -550,6 +552,13 @@ fn cmd_run(a: RunArgs, quiet: bool) -> Result<()> {
         print!("results\n{}", homing::report::results_table(&s));
     }
     println!("outputs in {}", a.out.display());
+    if let Some(u) = &s.user_stop {
+        eprintln!(
+            "stopped by the user after frame {} ({} frames not processed; refinement {})",
+            u.frame, u.frames_not_processed, u.refinement
+        );
+        std::process::exit(homing::interrupt::EXIT_STATUS);
+    }
     Ok(())
 }
 

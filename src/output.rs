@@ -166,6 +166,18 @@ impl Timing {
     }
 }
 
+/// summary.json's account of a user stop.
+#[derive(Debug, Clone, Serialize)]
+pub struct UserStop {
+    /// The last frame processed (sequence index) and its stamp.
+    pub frame: usize,
+    pub t: f64,
+    /// Frames of the sequence (after the perturbation plan) left unread.
+    pub frames_not_processed: usize,
+    /// Final's refinement: "complete", or how it was cut short.
+    pub refinement: String,
+}
+
 /// `summary.json`.
 #[derive(Debug, Clone, Serialize)]
 pub struct Summary {
@@ -197,6 +209,9 @@ pub struct Summary {
     /// Why the machine stopped early (corrupted map that no pool explains), if it did.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub stop_reason: Option<String>,
+    /// Where a user stop (SIGINT/SIGTERM) ended the run, if one did.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub user_stop: Option<UserStop>,
     pub final_state: String,
     pub perturbations: PerturbationPlan,
     pub camera: CameraConfig,

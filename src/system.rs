@@ -178,6 +178,7 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
     let mut failure = None;
     let n = perturbed.len();
     let mut delivered = 0usize;
+    let mut user_stop: Option<(usize, f64)> = None;
     // Images are decoded on a loader thread a few frames ahead (in both modes: it changes
     // when a frame is read, never what is computed from it).
     std::thread::scope(|scope| {
@@ -312,6 +313,15 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
                 // the sequence is not processed.
                 break;
             }
+            // Interruptible: a user stop (SIGINT/SIGTERM) ends the run after this frame.
+            if crate::interrupt::stop_requested() {
+                user_stop = Some((frame.index, frame.t));
+                tracing::warn!(
+                    "user stop after frame {} ({delivered} of {n} delivered): to Final",
+                    frame.index
+                );
+                break;
+            }
             if delivered.is_multiple_of(100) {
                 tracing::info!(
                     "frame {delivered}/{n} state {} keyframes {}",
@@ -328,6 +338,8 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
     // End of data (or a fatal input error): Interruptible → Final.
     let trigger = if failure.is_some() {
         "input_error"
+    } else if user_stop.is_some() {
+        crate::control::USER_STOP
     } else {
         "end_of_data"
     };
@@ -460,6 +472,15 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
             .map(|m| (m.id, m.keyframes.len()))
             .collect(),
         stop_reason: machine.stop_reason.clone(),
+        user_stop: user_stop.map(|(frame, t)| crate::output::UserStop {
+            frame,
+            t,
+            frames_not_processed: n - delivered,
+            refinement: machine
+                .refinement_cut
+                .clone()
+                .unwrap_or_else(|| "complete".into()),
+        }),
         closures_accepted: closures.iter().filter(|c| c.verdict == "accepted").count(),
         closures_rejected: closures
             .iter()

@@ -1745,6 +1745,9 @@ impl StateMachine {
         let interval = self.cfg.mapping.final_ba_frame_interval_s;
         let ids: Vec<MapId> = self.atlas.maps.keys().copied().collect();
         for id in ids {
+            if self.refinement_cut_short(id) {
+                break;
+            }
             let map = self.atlas.maps.get_mut(&id).expect("listed");
             let (cameras, rest) = select_frames(map, &self.frame_obs, interval);
             let edges = if self.cfg.mapping.final_depth_edges && !self.mono {
@@ -1799,6 +1802,27 @@ impl StateMachine {
                 }
             }
         }
+    }
+}
+
+impl StateMachine {
+    /// Whether Final's refinement stops before map `next` (after a user stop: its time limit
+    /// is over, or a second signal came); records why once.
+    fn refinement_cut_short(&mut self, next: MapId) -> bool {
+        let why = if crate::interrupt::skip_refinement() {
+            "skipped by a second stop signal"
+        } else if self
+            .refinement_deadline
+            .is_some_and(|d| std::time::Instant::now() >= d)
+        {
+            "cut short by mapping.final_refinement_max_s"
+        } else {
+            return false;
+        };
+        let unrefined = self.atlas.maps.range(next..).count();
+        tracing::warn!("Final's refinement {why}: {unrefined} maps keep their tracked poses");
+        self.refinement_cut = Some(format!("{why}: {unrefined} maps not refined"));
+        true
     }
 }
 

@@ -85,6 +85,9 @@ struct Conditions {
     recovered: Option<bool>,
 }
 
+/// The Interruptible state's user-stop event (SIGINT/SIGTERM, [`crate::interrupt`]).
+pub const USER_STOP: &str = "user_stop";
+
 pub struct StateMachine {
     pub spec: MachineSpec,
     pub state: State,
@@ -157,6 +160,11 @@ pub struct StateMachine {
     pub refined_frames: BTreeMap<usize, (KfId, Isometry3<f64>)>,
     /// Set when the machine stopped because the map is unusable.
     pub stop_reason: Option<String>,
+    /// After a user stop: when Final's refinement must end (`mapping.final_refinement_max_s`).
+    refinement_deadline: Option<std::time::Instant>,
+    /// How Final's refinement ended when it was cut short (a user stop's time limit or second
+    /// signal), for summary.json.
+    pub refinement_cut: Option<String>,
     invalidated_from: Option<usize>,
     mono: bool,
     /// Inliers of the tracker's pose on the latest step's frame, if the tracker ran on it.
@@ -218,6 +226,8 @@ impl StateMachine {
             keyframe_made: false,
             frame_obs: BTreeMap::new(),
             refined_frames: BTreeMap::new(),
+            refinement_deadline: None,
+            refinement_cut: None,
             invalidated_from: None,
             mono: config.sequence.mono,
             track_inliers: None,
@@ -364,11 +374,19 @@ impl StateMachine {
     }
 
     /// Interruptible → Final (end of data, user stop, or an input error).
+    /// After a [`USER_STOP`] the refinement is bounded in time (and skipped on a second
+    /// signal, see [`crate::interrupt`]).
     pub fn finish(&mut self, trigger: &str, timing: &mut Timing) -> StepOutput {
         let from = self.state_name();
         let was_final = self.state == State::Final;
         self.state = State::Final;
         self.merger.poll(&mut self.atlas, true);
+        if trigger == USER_STOP {
+            self.refinement_deadline = Some(
+                std::time::Instant::now()
+                    + std::time::Duration::from_secs_f64(self.cfg.mapping.final_refinement_max_s),
+            );
+        }
         if !was_final {
             self.final_refinement(timing);
         }

@@ -24,3 +24,4 @@ mod run_outputs;
 mod slam_mono;
 mod slam_rgbd;
 mod two_view;
+mod user_stop;
