@@ -311,6 +311,12 @@ struct RunArgs {
     /// Disable loop closing (detection, validation, global optimisation).
     #[arg(long)]
     no_loop_closing: bool,
+    /// Stop at the first frame that cannot be read (missing, truncated or corrupt image,
+    /// wrong size or depth format), writing the outputs so far. Without it such a frame is a
+    /// failed measurement, like a black frame: a warning names the file and summary.json lists
+    /// it.
+    #[arg(long)]
+    strict_input: bool,
     /// Init loads this saved atlas from an earlier session (multi-session).
     #[arg(long, value_name = "FILE")]
     load_map: Option<PathBuf>,
@@ -539,6 +545,7 @@ fn cmd_run(a: RunArgs, quiet: bool) -> Result<()> {
             (None, None) => None,
         },
         progress: cli_progress::start(quiet),
+        strict_input: a.strict_input,
     };
     let s = run(&opts);
     cli_progress::finish();

@@ -166,6 +166,16 @@ impl Timing {
     }
 }
 
+/// A frame that could not be read (missing, truncated or corrupt file, wrong size or depth
+/// format), taken as a failed measurement.
+#[derive(Debug, Clone, Serialize)]
+pub struct UnreadableFrame {
+    pub frame: usize,
+    pub t: f64,
+    /// The error, naming the file.
+    pub error: String,
+}
+
 /// summary.json's account of a user stop.
 #[derive(Debug, Clone, Serialize)]
 pub struct UserStop {
@@ -234,6 +244,10 @@ pub struct Summary {
     /// The input error that ended the run early, if any (outputs up to it are still written).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub error: Option<String>,
+    /// Frames that could not be read and were taken as failed measurements (without
+    /// `--strict-input`), and which.
+    pub frames_unreadable: usize,
+    pub unreadable_frames: Vec<UnreadableFrame>,
 }
 
 /// Writer for one run's output folder.

@@ -63,6 +63,9 @@ pub struct RunOptions {
     /// Called after every processed frame (a progress bar). It only looks: the run's outputs
     /// are the same with or without it.
     pub progress: Option<ProgressHook>,
+    /// `--strict-input`: a frame that cannot be read ends the run (the outputs so far are
+    /// written) instead of becoming a failed measurement.
+    pub strict_input: bool,
 }
 
 /// Where a run stands after a frame, for a progress display.
@@ -179,18 +182,20 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
     let n = perturbed.len();
     let mut delivered = 0usize;
     let mut user_stop: Option<(usize, f64)> = None;
+    let mut unreadable: Vec<crate::output::UnreadableFrame> = Vec::new();
     // Images are decoded on a loader thread a few frames ahead (in both modes: it changes
     // when a frame is read, never what is computed from it).
     std::thread::scope(|scope| {
         let (tx, rx) = std::sync::mpsc::sync_channel(4);
         let perturbed = &perturbed;
+        let strict = opts.strict_input;
         scope.spawn(move || {
             let mut frames = perturbed.frames();
             loop {
                 let t0 = Instant::now();
                 let Some(frame) = frames.next() else { break };
                 let ms = t0.elapsed().as_secs_f64() * 1e3;
-                let stop = frame.is_err();
+                let stop = frame.is_err() && strict;
                 if tx.send((frame, ms)).is_err() || stop {
                     break;
                 }
@@ -200,6 +205,21 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
             timing.record("load", load_ms);
             let frame = match frame {
                 Ok(f) => f,
+                // A frame on disk that cannot be read is a failed measurement, which the state
+                // machine meets like a black frame: the run goes on.
+                Err(e) if !opts.strict_input => {
+                    let index = perturbed.plan.delivered[delivered];
+                    let t = frames.timestamp(index);
+                    tracing::warn!(
+                        "frame {index}: {e}: taken as a failed measurement (--strict-input stops instead)"
+                    );
+                    unreadable.push(crate::output::UnreadableFrame {
+                        frame: index,
+                        t,
+                        error: e.to_string(),
+                    });
+                    failed_measurement(index, t, &camera, spec.mono)
+                }
                 Err(e) => {
                     failure = Some(e);
                     break;
@@ -440,6 +460,7 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
             &perturbed.plan,
             &closures,
             &pose_maps,
+            &unreadable.iter().map(|u| u.frame).collect(),
         )?
     } else {
         None
@@ -505,6 +526,8 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
         },
         evaluation,
         error: failure.as_ref().map(|e| e.to_string()),
+        frames_unreadable: unreadable.len(),
+        unreadable_frames: unreadable,
     };
     out.write_trajectory(&trajectory)?;
     out.write_keyframes(&keyframes)?;
@@ -521,6 +544,27 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
     match failure {
         Some(e) => Err(e),
         None => Ok(summary),
+    }
+}
+
+/// What a sensor that failed to deliver frame `index` gives: black images (no depth either),
+/// like a `black` fault.
+fn failed_measurement(
+    index: usize,
+    t: f64,
+    camera: &crate::config::CameraConfig,
+    mono: bool,
+) -> crate::io::tum::Frame {
+    let (w, h) = (camera.width, camera.height);
+    crate::io::tum::Frame {
+        index,
+        t,
+        rgb: image::RgbImage::new(w, h),
+        depth: (!mono).then(|| crate::io::tum::DepthImage {
+            width: w,
+            height: h,
+            data: vec![0.0; (w * h) as usize],
+        }),
     }
 }
 
@@ -600,6 +644,7 @@ fn evaluate(
     plan: &PerturbationPlan,
     closures: &[ClosureRow],
     pose_maps: &[(f64, u32)],
+    unreadable: &std::collections::BTreeSet<usize>,
 ) -> Result<Option<serde_json::Value>> {
     let Some(gt) = seq.groundtruth()? else {
         return Ok(Some(
@@ -666,9 +711,14 @@ fn evaluate(
         .collect();
     let largest_map_coverage = eval::coverage(&eligible, &largest_est, 0.02);
     // Recovery as the robustness benchmark judges it: of the frames delivered (false frames
-    // excluded: nothing should pose them), those the final largest map holds within
-    // ACCURATE_M of the truth after aligning that map alone.
-    let faults: std::collections::BTreeSet<usize> = plan.faults.iter().map(|f| f.frame).collect();
+    // and unreadable ones excluded: nothing should pose them), those the final largest map
+    // holds within ACCURATE_M of the truth after aligning that map alone.
+    let faults: std::collections::BTreeSet<usize> = plan
+        .faults
+        .iter()
+        .map(|f| f.frame)
+        .chain(unreadable.iter().copied())
+        .collect();
     let delivered: Vec<f64> = plan
         .delivered
         .iter()

@@ -14,6 +14,18 @@ fn run_on(dir: &std::path::Path, out: &std::path::Path) -> (bool, String, String
     ])
 }
 
+/// [`run_on`] with `--strict-input`: an unreadable frame ends the run.
+fn run_strict(dir: &std::path::Path, out: &std::path::Path) -> (bool, String, String) {
+    homing(&[
+        "run",
+        "--sequence",
+        dir.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--strict-input",
+    ])
+}
+
 #[test]
 fn truncated_png() {
     let tmp = tempfile::tempdir().unwrap();
@@ -26,7 +38,7 @@ fn truncated_png() {
     let bytes = fs::read(&victim).unwrap();
     fs::write(&victim, &bytes[..bytes.len() / 2]).unwrap();
     let out = tmp.path().join("out");
-    let (ok, _, err) = run_on(&dir, &out);
+    let (ok, _, err) = run_strict(&dir, &out);
     assert_clear_error(ok, &err, victim.file_name().unwrap().to_str().unwrap());
     // Results up to the bad frame are still written, with the error recorded.
     let summary = fs::read_to_string(out.join("summary.json")).unwrap();
@@ -45,7 +57,7 @@ fn eight_bit_depth() {
     image::GrayImage::new(common::W, common::H)
         .save(&victim)
         .unwrap();
-    let (ok, _, err) = run_on(&dir, &tmp.path().join("out"));
+    let (ok, _, err) = run_strict(&dir, &tmp.path().join("out"));
     assert_clear_error(ok, &err, "16-bit");
     assert!(
         err.contains(victim.file_name().unwrap().to_str().unwrap()),
@@ -63,7 +75,7 @@ fn wrong_image_size() {
         .min()
         .unwrap();
     image::RgbImage::new(10, 10).save(&victim).unwrap();
-    let (ok, _, err) = run_on(&dir, &tmp.path().join("out"));
+    let (ok, _, err) = run_strict(&dir, &tmp.path().join("out"));
     assert_clear_error(ok, &err, "10x10");
 }
 
@@ -77,8 +89,76 @@ fn missing_image() {
         .max()
         .unwrap();
     fs::remove_file(&victim).unwrap();
-    let (ok, _, err) = run_on(&dir, &tmp.path().join("out"));
+    let (ok, _, err) = run_strict(&dir, &tmp.path().join("out"));
     assert_clear_error(ok, &err, victim.file_name().unwrap().to_str().unwrap());
+}
+
+/// Without `--strict-input` a frame that cannot be read is a failed measurement: a sequence
+/// with a truncated colour PNG, a missing one and an 8-bit depth image runs to its end, a
+/// warning names each file, summary.json counts and lists them, and the evaluation does not
+/// expect them posed. With `--strict-input` the first of them ends the run.
+#[test]
+fn unreadable_frames_are_failed_measurements() {
+    let tmp = tempfile::tempdir().unwrap();
+    // A copy of small `desk` (the shared one must stay intact).
+    let dir = tmp.path().join("desk");
+    copy_dir(&common::small("desk"), &dir);
+    let sorted = |sub: &str| {
+        let mut v: Vec<_> = fs::read_dir(dir.join(sub))
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .collect();
+        v.sort();
+        v
+    };
+    let (rgb, depth) = (sorted("rgb"), sorted("depth"));
+    let n = rgb.len() as u64;
+    let truncated = &rgb[3];
+    let bytes = fs::read(truncated).unwrap();
+    fs::write(truncated, &bytes[..bytes.len() / 2]).unwrap();
+    let missing = &rgb[6];
+    fs::remove_file(missing).unwrap();
+    let eight_bit = &depth[9];
+    image::GrayImage::new(common::W, common::H)
+        .save(eight_bit)
+        .unwrap();
+    let name = |p: &std::path::Path| p.file_name().unwrap().to_str().unwrap().to_string();
+
+    let out = tmp.path().join("out");
+    let (ok, _, err) = homing(&[
+        "run",
+        "--sequence",
+        dir.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--eval",
+    ]);
+    assert!(ok, "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+    for p in [truncated, missing, eight_bit] {
+        assert!(err.contains(&name(p)), "no warning names {}: {err}", name(p));
+    }
+    let s: serde_json::Value =
+        serde_json::from_str(&fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(s["frames"], n, "{s}");
+    assert_eq!(s["frames_unreadable"], 3, "{s}");
+    let listed: Vec<u64> = s["unreadable_frames"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|u| u["frame"].as_u64().unwrap())
+        .collect();
+    assert_eq!(listed, [3, 6, 9]);
+    assert!(s.get("error").is_none(), "{s}");
+    // Tracking goes on across them, and coverage does not count them.
+    assert_eq!(s["maps"], 1, "{s}");
+    assert!(s["frames_with_pose"].as_u64().unwrap() >= n - 3, "{s}");
+    let ev = &s["evaluation"];
+    assert_eq!(ev["delivered_frames_judged"], n - 3, "{ev}");
+    assert_eq!(ev["largest_map_accurate_coverage"], 1.0, "{ev}");
+
+    let (ok, _, err) = run_strict(&dir, &tmp.path().join("strict"));
+    assert_clear_error(ok, &err, &name(truncated));
 }
 
 /// Rewrites line `n` (1-based, counting comment lines) of a text file.
@@ -251,4 +331,17 @@ fn camera_cannot_be_guessed() {
     fs::remove_file(dir.join("camera.toml")).unwrap();
     let (ok, _, err) = run_on(&dir, &tmp.path().join("o"));
     assert_clear_error(ok, &err, "cannot tell the camera");
+}
+
+fn copy_dir(from: &std::path::Path, to: &std::path::Path) {
+    fs::create_dir_all(to).unwrap();
+    for e in fs::read_dir(from).unwrap() {
+        let p = e.unwrap().path();
+        let dest = to.join(p.file_name().unwrap());
+        if p.is_dir() {
+            copy_dir(&p, &dest);
+        } else {
+            fs::copy(&p, &dest).unwrap();
+        }
+    }
 }
