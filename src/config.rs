@@ -194,6 +194,14 @@ pub struct MappingConfig {
     /// maps not refined by then keep their tracked poses (0 = no refinement). The end of the
     /// data is never limited.
     pub final_refinement_max_s: f64,
+    /// Final's refinement keeps the observations of at most this many tracked frames per
+    /// keyframe (0 = all): past it, the frame closest in time to its neighbours is forgotten
+    /// (`control::frames`). Memory then grows with the map, not with the run's length.
+    pub final_frames_per_keyframe: u32,
+    /// Of those, at most this many per keyframe are cameras of the Final BA (0 = no limit); the
+    /// others are re-placed on the refined map. The BA's memory grows with the square of its
+    /// cameras where they share points (a long revisit of one place).
+    pub final_ba_cameras_per_keyframe: u32,
     /// RGB-D: also triangulate the new keyframe's unmatched key points with those of its
     /// covisible keyframes, as ORB-SLAM2's `CreateNewMapPoints` does for RGB-D, so the map
     /// holds points where the sensor has no depth (far walls, a room seen through its door).
@@ -215,6 +223,8 @@ impl Default for MappingConfig {
             final_depth_edges: true,
             final_depth_edges_local_planes: false,
             final_refinement_max_s: 30.0,
+            final_frames_per_keyframe: 100,
+            final_ba_cameras_per_keyframe: 10,
             triangulate_points: false,
         }
     }
@@ -658,6 +668,18 @@ impl Config {
             m.final_ba_frame_interval_s,
             0.0,
             3600.0,
+        );
+        c.range(
+            "mapping.final_frames_per_keyframe",
+            m.final_frames_per_keyframe as f64,
+            0.0,
+            1e6,
+        );
+        c.range(
+            "mapping.final_ba_cameras_per_keyframe",
+            m.final_ba_cameras_per_keyframe as f64,
+            0.0,
+            1e6,
         );
         c.range(
             "mapping.final_refinement_max_s",

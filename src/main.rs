@@ -110,6 +110,24 @@ enum ConvertCmd {
 
 #[derive(Subcommand)]
 enum BenchCmd {
+    /// Peak memory and wall time against run length: the sequence played 1×, 4×, 16× in a row
+    /// (the same place over and over), one child run each; writes OUT/memory.md and .json.
+    ///
+    /// Example: homing bench memory --sequence data/small/revisit --repeats 1,4,16
+    Memory {
+        /// TUM RGB-D folder.
+        #[arg(long)]
+        sequence: PathBuf,
+        /// Plays of the sequence, one run each.
+        #[arg(long, value_delimiter = ',', default_value = "1,4,16")]
+        repeats: Vec<usize>,
+        /// Config file (TOML) for every run.
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Output folder.
+        #[arg(long, default_value = "out/bench-memory")]
+        out: PathBuf,
+    },
     /// Run a sequence deterministic and threaded; print per-stage ms/frame, throughput
     /// against real time and ATE; write OUT/bench_tracking.md and both runs' outputs.
     Tracking {
@@ -408,6 +426,20 @@ fn main() {
             out,
             png,
         } => cmd_states(controller, out, png),
+        Cmd::Bench(BenchCmd::Memory {
+            sequence,
+            repeats,
+            config,
+            out,
+        }) => homing::bench::memory::memory(&homing::bench::memory::Options {
+            sequence,
+            repeats,
+            out,
+            config,
+            exe: None,
+        })
+        .map(|md| print!("\n{md}"))
+        .map_err(Into::into),
         Cmd::Bench(BenchCmd::Tracking {
             sequence,
             config,

@@ -234,6 +234,10 @@ pub struct Summary {
     /// the frames taken from the file (what extracting them here took), so that fps still
     /// includes extraction.
     pub wall_time_s: f64,
+    /// The process's peak resident memory (MB, Linux `VmHWM`) when the outputs were written;
+    /// absent where the system does not report it.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub peak_rss_mb: Option<f64>,
     /// Of `wall_time_s`: the recorded extraction time of frames taken from `--features`.
     pub extraction_reused_s: f64,
     /// Time span of the delivered frames' stamps: what "real time" means for this run.

@@ -519,6 +519,7 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
             "deterministic"
         },
         wall_time_s: wall.elapsed().as_secs_f64() + extraction_reused_ms / 1e3,
+        peak_rss_mb: peak_rss_mb(),
         extraction_reused_s: extraction_reused_ms / 1e3,
         data_duration_s: match (states.first(), states.last()) {
             (Some(a), Some(b)) => b.t - a.t,
@@ -545,6 +546,14 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
         Some(e) => Err(e),
         None => Ok(summary),
     }
+}
+
+/// This process's peak resident set size in MB (`VmHWM` of /proc/self/status, Linux).
+pub fn peak_rss_mb() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb / 1024.0)
 }
 
 /// What a sensor that failed to deliver frame `index` gives: black images (no depth either),

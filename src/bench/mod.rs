@@ -6,6 +6,7 @@
 //! measures with the ground truth how much place evidence two stretches share (see [`overlap`]).
 
 pub mod case_study;
+pub mod memory;
 pub mod overlap;
 pub mod robustness;
 pub mod robustness_plot;

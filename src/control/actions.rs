@@ -1651,7 +1651,7 @@ impl StateMachine {
                 let after = f + 1;
                 self.invalidated_from = Some(self.invalidated_from.map_or(after, |x| x.min(after)));
                 // Their observations go too: Final may follow in this very step.
-                self.frame_obs.retain(|frame, _| *frame < after);
+                self.frame_obs.forget_from(after);
             }
             for row in self.closures.iter_mut() {
                 if row.pool == Some(u.pool) {
@@ -1743,13 +1743,24 @@ impl StateMachine {
             timing.record("local_ba_thread", ms);
         }
         let interval = self.cfg.mapping.final_ba_frame_interval_s;
+        tracing::info!(
+            "Final refines with {} tracked frames ({} forgotten for the budget of {} per keyframe)",
+            self.frame_obs.len(),
+            self.frame_obs.forgotten,
+            self.cfg.mapping.final_frames_per_keyframe
+        );
         let ids: Vec<MapId> = self.atlas.maps.keys().copied().collect();
         for id in ids {
             if self.refinement_cut_short(id) {
                 break;
             }
             let map = self.atlas.maps.get_mut(&id).expect("listed");
-            let (cameras, rest) = select_frames(map, &self.frame_obs, interval);
+            let (cameras, rest) = select_frames(
+                map,
+                self.frame_obs.all(),
+                interval,
+                self.cfg.mapping.final_ba_cameras_per_keyframe as usize,
+            );
             let edges = if self.cfg.mapping.final_depth_edges && !self.mono {
                 timing.time("final_depth_edges", || {
                     crate::depth_registration::seam_edges(
@@ -1796,7 +1807,7 @@ impl StateMachine {
                     .collect()
             });
             for (f, pose_cw) in poses.into_iter().chain(placed) {
-                let kf = self.frame_obs[&f].kf;
+                let kf = self.frame_obs.all()[&f].kf;
                 if let Some(k) = map.keyframes.get(&kf) {
                     self.refined_frames.insert(f, (kf, k.relative_of(&pose_cw)));
                 }
@@ -1829,11 +1840,15 @@ impl StateMachine {
 /// The tracked frames of `map` for the Final BA: the cameras (the first frame, then the first
 /// one at least `interval` seconds after the last chosen; frames that became keyframes are
 /// cameras already and left out), and the rest, to be re-placed on the refined map. None
-/// when `interval` is 0 (keyframes only).
+/// when `interval` is 0 (keyframes only). At most `per_keyframe` cameras are anchored to one
+/// keyframe (0: no limit): the BA's reduced camera system grows with the square of its cameras
+/// where they share points, and revisiting one place for long would otherwise make it the
+/// run's memory peak.
 fn select_frames<'a>(
     map: &crate::map::Map,
     frames: &'a BTreeMap<usize, FrameObservations>,
     interval: f64,
+    per_keyframe: usize,
 ) -> (Vec<&'a FrameObservations>, Vec<&'a FrameObservations>) {
     let mut cameras = Vec::new();
     let mut rest = Vec::new();
@@ -1841,12 +1856,15 @@ fn select_frames<'a>(
         return (cameras, rest);
     }
     let mut last: Option<f64> = None;
+    let mut anchored: BTreeMap<KfId, usize> = BTreeMap::new();
     for f in frames
         .values()
         .filter(|f| map.keyframes.contains_key(&f.kf) && !f.keyframe)
     {
-        if last.is_none_or(|l| f.t - l >= interval) {
+        let n = anchored.entry(f.kf).or_default();
+        if last.is_none_or(|l| f.t - l >= interval) && (per_keyframe == 0 || *n < per_keyframe) {
             last = Some(f.t);
+            *n += 1;
             cameras.push(f);
         } else {
             rest.push(f);
@@ -2048,11 +2066,15 @@ mod tests {
             (0..12).map(|i| (i, frame(i, kf0))).collect();
         // A frame of another map is neither a camera nor re-placed here.
         frames.insert(12, frame(12, 999));
-        let (cameras, rest) = select_frames(&map, &frames, 0.5);
+        let (cameras, rest) = select_frames(&map, &frames, 0.5, 0);
         let ids = |v: &[&FrameObservations]| v.iter().map(|f| f.frame).collect::<Vec<_>>();
         // t = 0.25 i; frames 0 and 4 became keyframes.
         assert_eq!(ids(&cameras), vec![1, 3, 5, 7, 9, 11]);
         assert_eq!(ids(&rest), vec![2, 6, 8, 10]);
+        // At most 4 cameras per keyframe: the later frames are re-placed.
+        let (cameras, rest) = select_frames(&map, &frames, 0.5, 4);
+        assert_eq!(ids(&cameras), vec![1, 3, 5, 7]);
+        assert_eq!(ids(&rest), vec![2, 6, 8, 9, 10, 11]);
     }
 
     /// Without depth, Localized leaves on losing half its best inliers (fr1_xyz's correct

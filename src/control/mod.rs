@@ -10,6 +10,7 @@
 //! optimisation finds the map inconsistent). Every transition is reported.
 
 pub mod actions;
+pub mod frames;
 pub mod spec;
 
 use crate::atlas::{Atlas, MapId};
@@ -155,7 +156,7 @@ pub struct StateMachine {
     /// A keyframe was made from this step's frame (it is a camera of the Final BA already).
     keyframe_made: bool,
     /// The observations of every frame whose pose stands, for Final's batch refinement.
-    frame_obs: BTreeMap<usize, crate::map_merger::FrameObservations>,
+    frame_obs: frames::FrameStore,
     /// Frame poses Final's batch refinement re-estimated: keyframe and pose relative to it.
     pub refined_frames: BTreeMap<usize, (KfId, Isometry3<f64>)>,
     /// Set when the machine stopped because the map is unusable.
@@ -224,7 +225,7 @@ impl StateMachine {
             entry_pose: None,
             pending_obs: None,
             keyframe_made: false,
-            frame_obs: BTreeMap::new(),
+            frame_obs: frames::FrameStore::new(config.mapping.final_frames_per_keyframe as usize),
             refined_frames: BTreeMap::new(),
             refinement_deadline: None,
             refinement_cut: None,
@@ -317,7 +318,7 @@ impl StateMachine {
             && let Some(k) = self.atlas.maps[&map].keyframes.get(&kf)
         {
             obs.anchor(k, rel, self.keyframe_made);
-            self.frame_obs.insert(m.frame, obs);
+            self.frame_obs.insert(obs);
         }
         StepOutput {
             state: self.state_name(),

@@ -136,7 +136,11 @@ fn unreadable_frames_are_failed_measurements() {
     assert!(ok, "{err}");
     assert!(!err.contains("panicked"), "{err}");
     for p in [truncated, missing, eight_bit] {
-        assert!(err.contains(&name(p)), "no warning names {}: {err}", name(p));
+        assert!(
+            err.contains(&name(p)),
+            "no warning names {}: {err}",
+            name(p)
+        );
     }
     let s: serde_json::Value =
         serde_json::from_str(&fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();

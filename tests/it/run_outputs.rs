@@ -184,3 +184,41 @@ fn frozen_and_black_faults_replace_images() {
     );
     assert_eq!(frames[5].rgb, seq.load(5).unwrap().rgb);
 }
+
+/// `homing bench memory` plays a sequence again with shifted stamps (one child run per play
+/// count) and reports each run's peak memory from its summary.json.
+#[test]
+fn bench_memory_plays_the_sequence_again_and_reports_peak_memory() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tum_folder(tmp.path(), "seq", 20);
+    let out = tmp.path().join("bench");
+    let (ok, stdout, err) = homing(&[
+        "bench",
+        "memory",
+        "--sequence",
+        dir.to_str().unwrap(),
+        "--repeats",
+        "1,3",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    assert!(stdout.contains("| 3× | 60 |"), "{stdout}");
+    let rows: Value =
+        serde_json::from_str(&fs::read_to_string(out.join("memory.json")).unwrap()).unwrap();
+    let rows = rows.as_array().unwrap();
+    assert_eq!(rows.len(), 2);
+    assert_eq!(rows[1]["frames"], 60);
+    for r in rows {
+        assert!(r["peak_rss_mb"].as_f64().unwrap() > 1.0, "{r}");
+    }
+    // The stamps of the second play follow the first's.
+    let list = fs::read_to_string(out.join("sequence-x3/associations.txt")).unwrap();
+    let stamps: Vec<f64> = list
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .map(|l| l.split_whitespace().next().unwrap().parse().unwrap())
+        .collect();
+    assert_eq!(stamps.len(), 60);
+    assert!(stamps.windows(2).all(|w| w[1] > w[0]));
+}
