@@ -212,6 +212,10 @@ enum BenchCmd {
         /// append its Table II to the report.
         #[arg(long, value_name = "DIR")]
         case_study: Option<PathBuf>,
+        /// Reuse the runs that a stopped (Ctrl-C) or earlier benchmark with the same commands
+        /// finished in OUT; only the others run.
+        #[arg(long)]
+        resume: bool,
     },
     /// How much place evidence two stretches of a sequence share, by the ground truth: per
     /// query frame, the reference frame whose key points (with depth) it sees most and finds
@@ -507,7 +511,13 @@ fn main() {
             out,
             config,
             case_study,
+            resume,
         }) => {
+            // Ctrl-C: the runs under way stop (each writes its outputs), no new one starts,
+            // and the finished rows are written; `--resume` goes on from there.
+            if let Err(e) = homing::interrupt::install() {
+                tracing::warn!("{e}: Ctrl-C will kill the benchmark");
+            }
             let opts = homing::bench::robustness::Options {
                 sequences: sequence,
                 mono,
@@ -519,6 +529,7 @@ fn main() {
                 config,
                 case_study,
                 exe: None,
+                resume,
             };
             homing::bench::robustness::robustness(&opts)
                 .map(|(_, md)| {
@@ -534,6 +545,10 @@ fn main() {
     if let Err(e) = result {
         eprintln!("error: {e:#}");
         std::process::exit(1);
+    }
+    if homing::interrupt::stop_requested() {
+        eprintln!("stopped by the user: the finished results are written");
+        std::process::exit(homing::interrupt::EXIT_STATUS);
     }
 }
 

@@ -237,6 +237,9 @@ pub struct Options {
     pub case_study: Option<PathBuf>,
     /// The `homing` binary for the runs (default: this executable).
     pub exe: Option<PathBuf>,
+    /// Reuse the runs a stopped (or earlier) benchmark with the same commands finished in
+    /// OUT; only the others run.
+    pub resume: bool,
 }
 
 /// One row of robustness.csv.
@@ -608,7 +611,7 @@ pub fn robustness(o: &Options) -> Result<(Vec<Row>, String)> {
             tracing::info!("bench robustness: case study on {}", data.display());
             sc.spawn(|| case_study::case_study(data, &cs_out, &cs_opts))
         });
-        let rows = run_parallel(&queue, jobs);
+        let rows = run_parallel(&queue, jobs, o.resume);
         let grid_s = wall.elapsed().as_secs_f64();
         if let Err(e) = std::fs::remove_dir_all(&frames_dir) {
             tracing::warn!("cannot remove {}: {e}", frames_dir.display());
@@ -622,6 +625,15 @@ pub fn robustness(o: &Options) -> Result<(Vec<Row>, String)> {
     let mut rows = rows;
     attach_seen_again(&mut rows, &seqs, o);
     let mut md = markdown(&seqs, &rows, &controllers, o.mono, o.drop_shift);
+    let stopped = crate::interrupt::stop_requested();
+    if stopped {
+        let unfinished = rows.iter().filter(|r| r.error.is_some()).count();
+        let _ = writeln!(
+            md,
+            "\n**Stopped by the user:** {unfinished} of {} runs not finished; the same command with `--resume` runs only those.",
+            rows.len()
+        );
+    }
     let _ = writeln!(
         md,
         "\n{} runs in {grid_s:.1} s wall clock, {jobs} at a time on {} cores{}.",
@@ -635,7 +647,7 @@ pub fn robustness(o: &Options) -> Result<(Vec<Row>, String)> {
     );
     write_outputs(&out, &rows, &md)?;
 
-    if let Some(cs) = cs {
+    if let Some(cs) = cs.filter(|_| !stopped) {
         let (_, cs_md) = cs?;
         let _ = writeln!(md, "\n{cs_md}");
         let _ = writeln!(
@@ -681,10 +693,10 @@ fn write_outputs(out: &Path, rows: &[Row], md: &str) -> Result<()> {
 }
 
 /// Runs the jobs `jobs` at a time; rows come back in job order whatever order they finish in.
-fn run_parallel(queue: &[Job], jobs: usize) -> Vec<Row> {
+fn run_parallel(queue: &[Job], jobs: usize, resume: bool) -> Vec<Row> {
     let done = AtomicUsize::new(0);
     super::parallel_map(queue, jobs, |job| {
-        let row = run_job(job);
+        let row = run_job(job, resume);
         let n = done.fetch_add(1, Ordering::SeqCst) + 1;
         println!("[{n}/{}] {}", queue.len(), progress_line(&row));
         row
@@ -713,7 +725,7 @@ fn progress_line(r: &Row) -> String {
 
 /// Runs one `homing run` child and reads its outputs into a row. Never fails: a run that
 /// crashed or could not start is a row with its error.
-fn run_job(job: &Job) -> Row {
+fn run_job(job: &Job, resume: bool) -> Row {
     let mut row = Row {
         sequence: job.sequence.clone(),
         perturbation: job.perturbation.name.clone(),
@@ -741,6 +753,27 @@ fn run_job(job: &Job) -> Row {
         error: None,
         group: Some(job.perturbation.group),
     };
+    // A run finished by an earlier benchmark with the same command (see `DONE_MARK`).
+    let mark = job.dir.join(DONE_MARK);
+    let argv_text = job.argv.join("\n");
+    let done = std::fs::read_to_string(&mark).ok();
+    if resume
+        && let Some((wall, cmd)) = done.as_deref().and_then(|d| d.split_once('\n'))
+        && cmd == argv_text
+        && let Ok(wall) = wall.parse::<f64>()
+    {
+        let mut reused = row.clone();
+        reused.wall_s = wall;
+        if read_run(&job.dir, &mut reused).is_ok() {
+            tracing::info!("resumed: {} is finished", job.dir.display());
+            return reused;
+        }
+    }
+    // A user stop (SIGINT/SIGTERM): the runs not started are reported, not run.
+    if crate::interrupt::stop_requested() {
+        row.error = Some(STOPPED.into());
+        return row;
+    }
     // Stale outputs of an earlier benchmark must not be read as this run's.
     if job.dir.exists()
         && let Err(e) = std::fs::remove_dir_all(&job.dir)
@@ -759,6 +792,7 @@ fn run_job(job: &Job) -> Row {
     }
     let output = command.output();
     row.wall_s = start.elapsed().as_secs_f64();
+    let measured = row.wall_s;
     let output = match output {
         Ok(o) => o,
         Err(e) => {
@@ -788,8 +822,20 @@ fn run_job(job: &Job) -> Row {
     if let Err(e) = read_run(&job.dir, &mut row) {
         row.error.get_or_insert_with(|| e.to_string());
     }
+    if row.error.is_none()
+        && let Err(e) =
+            crate::io::atomic_write(&mark, format!("{measured}\n{argv_text}").as_bytes())
+    {
+        tracing::warn!("{e}");
+    }
     row
 }
+
+/// Written into a run's folder once it finished (its wall time as the benchmark measured it,
+/// then its command, one argument a line): what `--resume` reuses. A run a user stop interrupted exits with an error and gets none.
+const DONE_MARK: &str = "bench-done.txt";
+/// The error of a run a user stop kept from starting.
+const STOPPED: &str = "stopped by the user before it started";
 
 /// Fills `row` from a run's summary.json and states.csv.
 fn read_run(dir: &Path, row: &mut Row) -> Result<()> {
@@ -1463,6 +1509,7 @@ mod tests {
             config: None,
             case_study: None,
             exe: None,
+            resume: false,
         };
         let err = robustness(&o).unwrap_err().to_string();
         assert!(err.contains("--drop-shift"), "{err}");

@@ -209,3 +209,80 @@ fn overlap_probe_tells_an_absent_join_from_a_present_one() {
     let best = across_gap.iter().map(|r| r.matched_search).max().unwrap();
     assert!(best <= 5, "{across_gap:?}");
 }
+
+/// Ctrl-C (SIGINT to the benchmark) after its first run: no new run starts, the finished row
+/// and the unfinished ones are written, and the exit status says it was stopped. The same
+/// command with `--resume` reuses the finished run (its row unchanged) and runs only the rest.
+#[test]
+fn a_stopped_benchmark_keeps_its_finished_rows_and_resumes() {
+    use std::io::{BufRead, BufReader};
+    let tmp = tempfile::tempdir().unwrap();
+    let seq = tmp.path().join("desk");
+    generate_desk(&seq, 72);
+    let out = tmp.path().join("bench");
+    let args = |resume: bool| {
+        let mut a = vec![
+            "bench".to_string(),
+            "robustness".into(),
+            "--sequence".into(),
+            seq.display().to_string(),
+            "--quick".into(),
+            "--controller".into(),
+            "ours".into(),
+            "--controller".into(),
+            "proslam".into(),
+            "--jobs".into(),
+            "1".into(),
+            "--out".into(),
+            out.display().to_string(),
+        ];
+        if resume {
+            a.push("--resume".into());
+        }
+        a
+    };
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_homing"))
+        .args(args(false))
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut sent = false;
+    for line in BufReader::new(child.stdout.take().unwrap()).lines() {
+        if !sent && line.unwrap().starts_with("[1/4]") {
+            let pid = child.id().to_string();
+            assert!(
+                std::process::Command::new("kill")
+                    .args(["-INT", &pid])
+                    .status()
+                    .unwrap()
+                    .success()
+            );
+            sent = true;
+        }
+    }
+    assert_eq!(child.wait().unwrap().code(), Some(130));
+    assert!(sent);
+    let rows = |csv: &str| csv.lines().skip(1).map(String::from).collect::<Vec<_>>();
+    let first = rows(&std::fs::read_to_string(out.join("robustness.csv")).unwrap());
+    assert_eq!(first.len(), 4);
+    let stopped = first
+        .iter()
+        .filter(|r| r.contains("stopped by the user before it started"))
+        .count();
+    assert!((1..=3).contains(&stopped), "{first:#?}");
+    let md = std::fs::read_to_string(out.join("robustness.md")).unwrap();
+    assert!(md.contains("Stopped by the user"), "{md}");
+
+    let (ok, stdout, stderr) =
+        common::homing(&args(true).iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(ok, "{stderr}");
+    assert!(!stdout.contains("stopped by the user"), "{stdout}");
+    let second = rows(&std::fs::read_to_string(out.join("robustness.csv")).unwrap());
+    assert_eq!(second.len(), 4);
+    for (a, b) in first.iter().zip(&second) {
+        if !a.contains("stopped by the user") {
+            assert_eq!(a, b, "a finished row changed on --resume");
+        }
+    }
+}
