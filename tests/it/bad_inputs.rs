@@ -5,25 +5,28 @@ use common::{assert_clear_error, homing, tum_folder};
 use std::fs;
 
 fn run_on(dir: &std::path::Path, out: &std::path::Path) -> (bool, String, String) {
-    homing(&[
-        "run",
-        "--sequence",
-        dir.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ])
+    run_with(dir, out, &[])
 }
 
 /// [`run_on`] with `--strict-input`: an unreadable frame ends the run.
 fn run_strict(dir: &std::path::Path, out: &std::path::Path) -> (bool, String, String) {
-    homing(&[
+    run_with(dir, out, &["--strict-input"])
+}
+
+fn run_with(
+    dir: &std::path::Path,
+    out: &std::path::Path,
+    extra: &[&str],
+) -> (bool, String, String) {
+    let mut args = vec![
         "run",
         "--sequence",
         dir.to_str().unwrap(),
         "--out",
         out.to_str().unwrap(),
-        "--strict-input",
-    ])
+    ];
+    args.extend_from_slice(extra);
+    homing(&args)
 }
 
 #[test]
@@ -125,14 +128,7 @@ fn unreadable_frames_are_failed_measurements() {
     let name = |p: &std::path::Path| p.file_name().unwrap().to_str().unwrap().to_string();
 
     let out = tmp.path().join("out");
-    let (ok, _, err) = homing(&[
-        "run",
-        "--sequence",
-        dir.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--eval",
-    ]);
+    let (ok, _, err) = run_with(&dir, &out, &["--eval"]);
     assert!(ok, "{err}");
     assert!(!err.contains("panicked"), "{err}");
     for p in [truncated, missing, eight_bit] {
