@@ -1814,9 +1814,7 @@ impl StateMachine {
             }
         }
     }
-}
 
-impl StateMachine {
     /// Whether Final's refinement stops before map `next` (after a user stop: its time limit
     /// is over, or a second signal came); records why once.
     fn refinement_cut_short(&mut self, next: MapId) -> bool {
