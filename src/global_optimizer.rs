@@ -138,6 +138,11 @@ pub fn optimize_map(
         });
     }
     let n_odometry = graph.edges.len();
+    // A closure's scale (monocular) is the median distance ratio seen from one frame, and a
+    // pool takes candidates within `POOL_MAX_LOG_SCALE` of each other as one: it is known to
+    // about half that (2 σ), not to the odometry's 0.5° equivalent (0.9 %). Held that tight, a
+    // right merge into a young map whose scale was still settling failed the consistency check.
+    let closure_scale_info = 1.0 / (0.5 * crate::loop_validator::POOL_MAX_LOG_SCALE).powi(2);
     let mut pools = Vec::new();
     for c in closures {
         let (Some(&im), Some(&iq)) = (index.get(&c.matched), index.get(&c.query)) else {
@@ -150,7 +155,10 @@ pub fn optimize_map(
                 map.keyframes[&c.matched].units,
                 map.keyframes[&c.query].units,
             ),
-            information: info7(&closure_information(cfg, &c.information), scale_info),
+            information: info7(
+                &closure_information(cfg, &c.information),
+                closure_scale_info,
+            ),
             robust: true,
         });
         pools.push(c.pool);

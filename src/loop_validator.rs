@@ -773,7 +773,7 @@ pub struct Pool {
 }
 
 /// Largest scale difference (log) between the alignments of one pool's candidates (monocular).
-const POOL_MAX_LOG_SCALE: f64 = 0.1;
+pub const POOL_MAX_LOG_SCALE: f64 = 0.1;
 
 /// Tolerances of "the same alignment".
 pub struct Agreement {

@@ -20,6 +20,14 @@ use std::collections::{BTreeMap, BTreeSet};
 /// Monocular keyframe decision: a frame tracking fewer than this share of its reference
 /// keyframe's points becomes a keyframe (ORB-SLAM's monocular `thRefRatio`).
 const MONO_KEYFRAME_TRACKED_RATIO: f64 = 0.9;
+/// Monocular keyframe decision: below this share of the reference keyframe's points the frame
+/// becomes a keyframe whatever its baseline (the view is leaving the map, e.g. a turn in place).
+const MONO_KEYFRAME_LOST_RATIO: f64 = 0.5;
+/// Monocular keyframe decision: least baseline to the reference keyframe, per unit of its
+/// median scene depth, before tracking fewer points makes a keyframe: twice the smallest
+/// triangulation parallax (`MAX_COS_PARALLAX`, 0.02 rad), so points up to twice the median
+/// depth can be triangulated against the reference.
+const MONO_KEYFRAME_BASELINE: f64 = 0.04;
 /// Monocular triangulation: covisible keyframes paired with a new keyframe (ORB-SLAM: 20).
 const TRIANGULATION_NEIGHBOURS: usize = 20;
 /// RGB-D triangulation: covisible keyframes paired with a new keyframe (ORB-SLAM2: 10).
@@ -290,7 +298,22 @@ impl MapMerger {
         } else {
             0
         };
-        let weak = (track.n_inliers as f64) < ratio * ref_matches as f64 || need_close;
+        let mut weak = (track.n_inliers as f64) < ratio * ref_matches as f64 || need_close;
+        if self.mono
+            && weak
+            && (track.n_inliers as f64) >= MONO_KEYFRAME_LOST_RATIO * ref_matches as f64
+        {
+            // A monocular keyframe exists to triangulate points: not before its baseline to
+            // the reference keyframe gives the points up to twice the scene's median depth
+            // the parallax triangulation needs (ORB-SLAM gets the same spacing from its
+            // local-mapping thread being busy; here mapping finishes before the next frame, and
+            // a keyframe every frame made a map of 1 %-baseline pairs that drifted by 30 cm on
+            // fr1_desk).
+            let center = track.pose_cw.inverse().translation.vector;
+            if let Some(median) = median_depth(map, ref_kf) {
+                weak = (center - ref_kf.center()).norm() >= MONO_KEYFRAME_BASELINE * median;
+            }
+        }
         (since >= self.cfg.keyframe_max_interval as usize || weak) && track.n_inliers > 15
     }
 
@@ -478,9 +501,33 @@ impl MapMerger {
     /// Projects the points of the best covisible keyframes into the new keyframe: a matching
     /// keypoint that has no point gets an observation; one that has another point merges the two
     /// (the one with fewer observations is replaced). Returns the number of fusions/additions.
+    ///
+    /// Monocular: also the other way (ORB-SLAM's `SearchInNeighbors`), the new keyframe's
+    /// points into its neighbours and their best neighbours. A triangulated point starts with
+    /// two observations and is culled two keyframes later unless a third keyframe observes it;
+    /// an older keyframe that sees the same keypoint but had no point there is that third
+    /// observation, and without it the map thins out wherever the camera keeps moving on (on
+    /// fr1_desk the map fell to 45 tracked points by frame 53 and tracking was lost).
     fn fuse(&self, map: &mut Map, kf: KfId) -> usize {
-        let neighbours = map.keyframes[&kf].best_covisible(10);
-        self.fuse_into(map, kf, &neighbours)
+        if !self.mono {
+            let neighbours = map.keyframes[&kf].best_covisible(10);
+            return self.fuse_into(map, kf, &neighbours);
+        }
+        let mut targets = map.keyframes[&kf].best_covisible(TRIANGULATION_NEIGHBOURS);
+        let mut seen: BTreeSet<KfId> = targets.iter().copied().collect();
+        seen.insert(kf);
+        for n in targets.clone() {
+            for n2 in map.keyframes[&n].best_covisible(5) {
+                if seen.insert(n2) {
+                    targets.push(n2);
+                }
+            }
+        }
+        let mut fused = 0;
+        for &t in &targets {
+            fused += self.fuse_into(map, t, &[kf]);
+        }
+        fused + self.fuse_into(map, kf, &targets)
     }
 
     /// Projects the points of keyframes `sources` into keyframe `kf` and fuses duplicates
@@ -514,16 +561,24 @@ impl MapMerger {
             if dist < 0.8 * p.min_distance || dist > 1.2 * p.max_distance {
                 continue;
             }
-            let r = 3.0 * self.geo.scales[self.geo.predicted_level(p.max_distance, dist)];
+            let level = self.geo.predicted_level(p.max_distance, dist);
+            let r = 3.0 * self.geo.scales[level];
             let k = &map.keyframes[&kf];
             let mut best = (u32::MAX, usize::MAX);
             for i in k.grid.in_area(&k.keypoints, uv.x, uv.y, r, 0, 255) {
+                let e = (k.keypoints[i].un - uv).norm_squared()
+                    * octave_information(k.keypoints[i].octave as u32);
                 // With depth, the point must also agree in depth (ORB-SLAM's stereo check).
                 let d = k.depth[i] as f64;
                 if d > 0.0 {
-                    let e = (k.keypoints[i].un - uv).norm_squared()
-                        * octave_information(k.keypoints[i].octave as u32);
                     if e > optim::CHI2_RGBD || (d - pc.z).abs() > 0.05 * pc.z.max(0.5) {
+                        continue;
+                    }
+                } else if self.mono {
+                    // Without depth: ORB-SLAM's monocular fuse gates, the reprojection χ² and
+                    // the keypoint's pyramid level near the one the distance predicts.
+                    let octave = k.keypoints[i].octave as usize;
+                    if e > optim::CHI2_MONO || octave + 1 < level || octave > level {
                         continue;
                     }
                 }

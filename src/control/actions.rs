@@ -28,6 +28,11 @@ pub type Pose = (Isometry3<f64>, MapId, KfId);
 /// Candidates validated per query (best scores first): geometry costs a few milliseconds each.
 const CANDIDATES_PER_QUERY: usize = 2;
 
+/// Fewest keyframes of a monocular map before the Relocalize region tries to merge it: the
+/// two-view pair it started from and one keyframe that tracking made (ORB-SLAM3 waits for 12
+/// before it looks for loops or merges at all).
+const MONO_MIN_MERGE_KEYFRAMES: usize = 3;
+
 /// Fewest detector votes for a relocalization near miss to be validated (see `relocalize`).
 const NEAR_MISS_MIN_VOTES: usize = 8;
 
@@ -654,6 +659,12 @@ impl StateMachine {
     /// Relocalize region: the frame queries the other maps' keyframes.
     fn relocalize(&mut self, m: &Measurement, track: &TrackResult) {
         let Some(cur) = self.current else { return };
+        // A monocular map is not merged before it has grown past its two-view initial pair:
+        // nothing in it yet can contradict a look-alike place (case study, mono: door C
+        // merged into door B three frames after the new map's initialisation, and standing).
+        if self.mono && self.atlas.maps[&cur].keyframes.len() < MONO_MIN_MERGE_KEYFRAMES {
+            return;
+        }
         let own: BTreeSet<KfId> = self.atlas.maps[&cur].keyframes.keys().copied().collect();
         let aliased = &self.aliased;
         let det = self.detect_frame(m, |k| own.contains(&k) || aliased.contains(&k));
