@@ -1153,3 +1153,86 @@ impl MapMerger {
         Some((r.pose, inliers))
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::optim::Intrinsics;
+    use crate::tracker::TrackMethod;
+    use nalgebra::Vector6;
+
+    /// A monocular map whose reference keyframe (at the origin) sees 300 points of a wall 2 m
+    /// away, each observed by three keyframes (the weight the keyframe decision counts); and a
+    /// frame of that wall.
+    fn mono_wall() -> (MapMerger, Map, KfId, Measurement) {
+        let geo = ImageGeometry::new(Intrinsics::TUM_FREIBURG1, 640, 480, 1.2, 8);
+        let uvs: Vec<Vector2<f64>> = (0..15)
+            .flat_map(|j| {
+                (0..20).map(move |i| Vector2::new(16.0 + 32.0 * i as f64, 16.0 + 32.0 * j as f64))
+            })
+            .collect();
+        let view = |frame| Measurement::synthetic(frame, uvs.clone(), 0.0, 0.0, vec![[0; 32]; 300]);
+        let mut map = Map::new(0);
+        let others = [
+            map.add_keyframe(&view(0), Isometry3::translation(0.1, 0.0, 0.0)),
+            map.add_keyframe(&view(1), Isometry3::translation(-0.1, 0.0, 0.0)),
+        ];
+        let m = view(2);
+        let reference = map.add_keyframe(&m, Isometry3::identity());
+        let intr = geo.intr;
+        for (i, kp) in m.keypoints.iter().enumerate() {
+            let p = Vector3::new(
+                (kp.un.x - intr.cx) * 2.0 / intr.fx,
+                (kp.un.y - intr.cy) * 2.0 / intr.fy,
+                2.0,
+            );
+            let pid = map.add_point(reference, i, p, 1.2, 8);
+            for k in others {
+                map.observe(k, i, pid);
+            }
+        }
+        let mut merger = MapMerger::new(&MappingConfig::default(), geo).monocular(true);
+        merger.last_kf_frame = Some(2);
+        (merger, map, reference, view(3))
+    }
+
+    fn tracked(map: &Map, reference: KfId, inliers: usize, x: f64) -> TrackResult {
+        let kf = &map.keyframes[&reference];
+        let mut matches = kf.points.clone();
+        for m in matches.iter_mut().skip(inliers) {
+            *m = None;
+        }
+        TrackResult {
+            pose_cw: Isometry3::translation(-x, 0.0, 0.0),
+            matches,
+            n_inliers: inliers,
+            able_to_track: true,
+            method: TrackMethod::MotionModel,
+            reference_kf: Some(reference),
+            visible: Vec::new(),
+            twist: Vector6::zeros(),
+            mean_chi2: 1.0,
+        }
+    }
+
+    /// Monocular keyframes come when the frame tracks clearly fewer of the reference's points
+    /// *and* has the baseline to triangulate new ones (4 % of the median depth: 8 cm at 2 m),
+    /// or when it tracks fewer than half of them whatever the baseline.
+    #[test]
+    fn a_monocular_keyframe_needs_a_baseline_unless_the_view_is_leaving_the_map() {
+        let (merger, map, reference, m) = mono_wall();
+        let need = |inliers, x| {
+            merger.need_keyframe(&map, &m, &tracked(&map, reference, inliers, x), true)
+        };
+        // 200 of 300 tracked (below 90 %): 1 cm away is too close, 10 cm is enough.
+        assert!(!need(200, 0.01), "a keyframe 1 cm from its reference");
+        assert!(need(200, 0.10), "no keyframe 10 cm from the reference");
+        // 120 of 300 (below half): the view is leaving the map; a keyframe at once.
+        assert!(need(120, 0.01), "no keyframe while losing the map");
+        // 285 of 300 (above 90 %): no keyframe wherever it is.
+        assert!(
+            !need(285, 0.10),
+            "a keyframe that tracks nearly all the reference's points"
+        );
+    }
+}
