@@ -1760,6 +1760,14 @@ impl StateMachine {
             self.frame_obs.forgotten,
             self.cfg.mapping.final_frames_per_keyframe
         );
+        // After a user stop, the time limit and a second signal also end a map's BA and its
+        // frames' re-placing part-way (the estimate so far stands), not only the next map's.
+        let cutoff = self
+            .refinement_deadline
+            .map(|deadline| crate::optim::Cutoff {
+                deadline: Some(deadline),
+                signal: Some(crate::interrupt::skip_refinement),
+            });
         let ids: Vec<MapId> = self.atlas.maps.keys().copied().collect();
         for id in ids {
             if self.refinement_cut_short(id) {
@@ -1799,10 +1807,20 @@ impl StateMachine {
                 );
             }
             let Some((r, poses)) = timing.time("final_ba", || {
-                self.merger.global_ba_with_frames(map, &cameras, &edges)
+                self.merger
+                    .global_ba_with_frames(map, &cameras, &edges, cutoff)
             }) else {
                 continue;
             };
+            if r.termination == crate::optim::Termination::CutOff {
+                tracing::warn!(
+                    "final BA of map {id} cut short after {} iterations (time limit or second stop signal)",
+                    r.iterations
+                );
+                self.refinement_cut.get_or_insert_with(|| {
+                    format!("map {id}'s BA cut short after {} iterations", r.iterations)
+                });
+            }
             tracing::info!(
                 "final BA of map {id}: {} keyframes and {} frames, cost {:.1} -> {:.1} in {} iterations, {} outlier observations",
                 map.keyframes.len(),
@@ -1812,8 +1830,10 @@ impl StateMachine {
                 r.iterations,
                 r.outliers.len()
             );
+            // Past the cutoff, the frames not yet re-placed keep their tracked poses.
             let placed: crate::map_merger::FramePoses = timing.time("final_frames", || {
                 rest.iter()
+                    .take_while(|_| !cutoff.is_some_and(|c| c.reached()))
                     .filter_map(|f| Some((f.frame, self.merger.place_frame(map, f)?.0)))
                     .collect()
             });
@@ -1841,7 +1861,11 @@ impl StateMachine {
         };
         let unrefined = self.atlas.maps.range(next..).count();
         tracing::warn!("Final's refinement {why}: {unrefined} maps keep their tracked poses");
-        self.refinement_cut = Some(format!("{why}: {unrefined} maps not refined"));
+        let cut = format!("{why}: {unrefined} maps not refined");
+        self.refinement_cut = Some(match self.refinement_cut.take() {
+            Some(before) => format!("{before}; {cut}"),
+            None => cut,
+        });
         true
     }
 }

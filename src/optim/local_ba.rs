@@ -134,6 +134,33 @@ pub struct BaParams {
     pub max_rejections: usize,
     /// Stop when an accepted step lowers the cost by less than this fraction.
     pub relative_tolerance: f64,
+    /// Stop before the next iteration once this says so (Final's refinement after a user
+    /// stop); the estimate so far stands.
+    pub cutoff: Option<Cutoff>,
+}
+
+/// When a solve must end early: a deadline, or a check for a stop signal (a plain function,
+/// so that the solver knows nothing of where it comes from).
+#[derive(Debug, Clone, Copy)]
+pub struct Cutoff {
+    pub deadline: Option<std::time::Instant>,
+    pub signal: Option<fn() -> bool>,
+}
+
+impl Cutoff {
+    pub fn reached(&self) -> bool {
+        self.deadline
+            .is_some_and(|d| std::time::Instant::now() >= d)
+            || self.signal.is_some_and(|f| f())
+    }
+}
+
+impl PartialEq for Cutoff {
+    /// Function pointers do not compare reliably; two cutoffs are alike when they have the
+    /// same deadline and both or neither check a signal.
+    fn eq(&self, other: &Self) -> bool {
+        self.deadline == other.deadline && self.signal.is_some() == other.signal.is_some()
+    }
 }
 
 impl Default for BaParams {
@@ -144,6 +171,7 @@ impl Default for BaParams {
             tau: 1e-5,
             max_rejections: 10,
             relative_tolerance: 1e-10,
+            cutoff: None,
         }
     }
 }
@@ -159,6 +187,8 @@ pub enum Termination {
     NoProgress,
     /// There was nothing to optimise (no free variable with a valid observation).
     NothingToOptimize,
+    /// `BaParams::cutoff` was reached.
+    CutOff,
 }
 
 /// Outcome of [`solve`].
@@ -762,6 +792,10 @@ pub fn solve(problem: &mut BaProblem, params: &BaParams) -> Result<BaReport, BaE
     }
     let mut iterations = 0;
     while has_variables && iterations < params.iterations {
+        if params.cutoff.is_some_and(|c| c.reached()) {
+            termination = Termination::CutOff;
+            break;
+        }
         iterations += 1;
         let (ne, max_diag) = linearize(problem, &st, &state, use_huber);
         let grad_inf = ne
@@ -862,27 +896,42 @@ pub fn solve_with_outlier_rejection(
         let r2 = solve(problem, second)?;
         return Ok(merge_reports(r1, r2, outliers_all(problem)));
     }
-    // Solve a copy without the outliers, then copy the estimate back.
+    // Solve without the outliers, then copy the estimate back. The observations are the
+    // largest array of a BA (Final's most of all): they are moved into the inlier problem,
+    // the outliers set aside, and restored in their order afterwards, not copied.
+    let mut observations = std::mem::take(&mut problem.observations);
+    let total = observations.len();
+    let mut set_aside = Vec::with_capacity(r1.outliers.len());
+    let mut outlier_iter = r1.outliers.iter().peekable();
+    let mut kept = 0;
+    for k in 0..total {
+        if outlier_iter.peek() == Some(&&k) {
+            outlier_iter.next();
+            set_aside.push(observations[k]);
+        } else {
+            observations[kept] = observations[k];
+            kept += 1;
+        }
+    }
+    observations.truncate(kept);
     let mut inlier_problem = BaProblem {
         keyframes: problem.keyframes.clone(),
         points: problem.points.clone(),
-        observations: Vec::with_capacity(problem.observations.len() - r1.outliers.len()),
+        observations,
         intrinsics: problem.intrinsics,
         pose_edges: problem.pose_edges.clone(),
     };
-    let mut outlier_iter = r1.outliers.iter().peekable();
-    for (k, o) in problem.observations.iter().enumerate() {
-        if outlier_iter.peek() == Some(&&k) {
-            outlier_iter.next();
-        } else {
-            inlier_problem.observations.push(*o);
-        }
-    }
     // Keep the gauge of the first stage even if its anchor lost all its observations.
     if let Some(c) = r1.gauge_fixed_camera {
         inlier_problem.keyframes[c].fixed = true;
     }
-    let r2 = solve(&mut inlier_problem, second)?;
+    let r2 = solve(&mut inlier_problem, second);
+    problem.observations = restore_outliers(
+        std::mem::take(&mut inlier_problem.observations),
+        &set_aside,
+        &r1.outliers,
+    );
+    let r2 = r2?;
     for (dst, src) in problem.keyframes.iter_mut().zip(&inlier_problem.keyframes) {
         dst.pose_cw = src.pose_cw;
     }
@@ -890,6 +939,31 @@ pub fn solve_with_outlier_rejection(
         dst.position_w = src.position_w;
     }
     Ok(merge_reports(r1, r2, outliers_all(problem)))
+}
+
+/// The inliers with the outliers set aside put back at their indices (`outliers`, sorted):
+/// filled from the back, in the inliers' own buffer.
+fn restore_outliers(
+    mut observations: Vec<BaObservation>,
+    set_aside: &[BaObservation],
+    outliers: &[usize],
+) -> Vec<BaObservation> {
+    let kept = observations.len();
+    let Some(&filler) = observations.first().or(set_aside.first()) else {
+        return observations;
+    };
+    observations.resize(kept + set_aside.len(), filler);
+    let (mut inlier, mut outlier) = (kept, set_aside.len());
+    for k in (0..observations.len()).rev() {
+        if outlier > 0 && outliers[outlier - 1] == k {
+            outlier -= 1;
+            observations[k] = set_aside[outlier];
+        } else {
+            inlier -= 1;
+            observations[k] = observations[inlier];
+        }
+    }
+    observations
 }
 
 /// Outliers over every observation of `problem` at its current estimate.
@@ -926,8 +1000,77 @@ mod tests {
 
     const INTR: Intrinsics = Intrinsics::TUM_FREIBURG1;
 
+    #[test]
+    fn outliers_set_aside_are_restored_at_their_indices() {
+        let o = |point| BaObservation {
+            camera: 0,
+            point,
+            obs: Observation::Mono {
+                uv: Vector2::zeros(),
+            },
+            info: 1.0,
+            shutter: Isometry3::identity(),
+        };
+        for outliers in [
+            vec![],
+            vec![0],
+            vec![5],
+            vec![0, 2, 3, 5],
+            vec![0, 1, 2, 3, 4, 5],
+        ] {
+            let inliers: Vec<_> = (0..6).filter(|k| !outliers.contains(k)).map(o).collect();
+            let aside: Vec<_> = outliers.iter().map(|&k| o(k)).collect();
+            let back = restore_outliers(inliers, &aside, &outliers);
+            let order: Vec<usize> = back.iter().map(|b| b.point).collect();
+            assert_eq!(order, (0..6).collect::<Vec<_>>(), "outliers {outliers:?}");
+        }
+    }
+
     /// Small perturbed scene: 5 cameras (camera 0 fixed), 30 points (two fixed), every
     /// camera sees every point, observations alternate mono / RGB-D.
+    #[test]
+    fn a_cutoff_ends_the_solve_and_keeps_the_estimate_so_far() {
+        let run = |cutoff| {
+            let mut problem = small_problem(3);
+            let start: Vec<_> = problem.keyframes.iter().map(|k| k.pose_cw).collect();
+            let params = BaParams {
+                cutoff,
+                ..Default::default()
+            };
+            let r = solve(&mut problem, &params).unwrap();
+            let moved =
+                problem.keyframes.iter().zip(&start).any(|(k, s)| {
+                    (k.pose_cw.translation.vector - s.translation.vector).norm() > 0.0
+                });
+            (r, moved)
+        };
+        let (free, moved) = run(None);
+        assert!(free.iterations > 0 && moved);
+        assert!(free.final_cost < free.initial_cost);
+        let past = std::time::Instant::now();
+        for cutoff in [
+            Cutoff {
+                deadline: Some(past),
+                signal: None,
+            },
+            Cutoff {
+                deadline: None,
+                signal: Some(|| true),
+            },
+        ] {
+            let (r, moved) = run(Some(cutoff));
+            assert_eq!(r.termination, Termination::CutOff);
+            assert_eq!(r.iterations, 0);
+            assert!(!moved);
+            assert_eq!(r.final_cost, r.initial_cost);
+        }
+        let later = Cutoff {
+            deadline: Some(past + std::time::Duration::from_secs(3600)),
+            signal: Some(|| false),
+        };
+        assert_eq!(run(Some(later)).0, free);
+    }
+
     fn small_problem(seed: u64) -> BaProblem {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let keyframes: Vec<BaCamera> = (0..5)

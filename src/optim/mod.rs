@@ -17,7 +17,7 @@ pub mod reprojection;
 pub mod se3;
 
 pub use local_ba::{
-    BaCamera, BaError, BaObservation, BaParams, BaPoint, BaPoseEdge, BaProblem, BaReport,
+    BaCamera, BaError, BaObservation, BaParams, BaPoint, BaPoseEdge, BaProblem, BaReport, Cutoff,
     Termination, solve, solve_with_outlier_rejection,
 };
 pub use pose_only::{PoseObservation, PoseParams, PoseRefinement, refine_pose};
