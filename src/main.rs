@@ -140,6 +140,10 @@ enum BenchCmd {
         /// Output folder.
         #[arg(long, default_value = "out/bench")]
         out: PathBuf,
+        /// Reuse a mode's run that a stopped (Ctrl-C) or earlier benchmark with the same
+        /// sequence and config finished in OUT; only the other runs.
+        #[arg(long)]
+        resume: bool,
     },
     /// The paper's case study (Table II): generate both sessions, run every controller,
     /// write OUT/case_study.md (side by side) and OUT/case_study.json.
@@ -165,6 +169,10 @@ enum BenchCmd {
         /// Config file (TOML) for every run; the camera still comes from the sequences.
         #[arg(long)]
         config: Option<PathBuf>,
+        /// Reuse the controllers that a stopped (Ctrl-C) or earlier case study with the same
+        /// data, config and mode finished in OUT; only the others run.
+        #[arg(long)]
+        resume: bool,
     },
     /// The robustness benchmark (issue #9): every sequence under a grid of perturbations (none,
     /// kidnapping at 1-3 places of 1-5 s, false frames at 1 % and 5 %, a dark stretch, depth
@@ -448,9 +456,16 @@ fn main() {
             sequence,
             config,
             out,
-        }) => homing::bench::tracking(&sequence, config.as_deref(), &out)
-            .map(|md| print!("{md}"))
-            .map_err(Into::into),
+            resume,
+        }) => {
+            // Ctrl-C: the run under way stops (writing its outputs), the other does not start.
+            if let Err(e) = homing::interrupt::install() {
+                tracing::warn!("{e}: Ctrl-C will kill the benchmark");
+            }
+            homing::bench::tracking(&sequence, config.as_deref(), &out, resume)
+                .map(|md| print!("{md}"))
+                .map_err(Into::into)
+        }
         Cmd::Bench(BenchCmd::Overlap {
             sequence,
             reference,
@@ -481,7 +496,8 @@ fn main() {
             threaded,
             controller,
             config,
-        }) => cmd_case_study(out, data, small, threaded, controller, config),
+            resume,
+        }) => cmd_case_study(out, data, small, threaded, controller, config, resume),
         Cmd::Bench(BenchCmd::Robustness {
             plot_only: true,
             out,
@@ -840,8 +856,14 @@ fn cmd_case_study(
     threaded: bool,
     controllers: Vec<ControllerKind>,
     config: Option<PathBuf>,
+    resume: bool,
 ) -> Result<()> {
     use homing::bench::case_study;
+    // Ctrl-C: the runs under way stop (each writes its outputs), no new one starts, and the
+    // finished controllers are written; `--resume` goes on from there.
+    if let Err(e) = homing::interrupt::install() {
+        tracing::warn!("{e}: Ctrl-C will kill the benchmark");
+    }
     let data = match data {
         Some(d) => d,
         None => {
@@ -862,6 +884,7 @@ fn cmd_case_study(
         controllers,
         config,
         jobs: 0,
+        resume,
     };
     let (_, md) = case_study::case_study(&data, &out, &opts)?;
     print!("{md}");

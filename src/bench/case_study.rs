@@ -12,7 +12,7 @@ use crate::error::{Error, Result};
 use crate::eval::timeline::{self, StepResult};
 use crate::output::Summary;
 use crate::system::{RunOptions, run};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
@@ -37,7 +37,7 @@ fn paper_column(kind: ControllerKind) -> Option<[&'static [&'static str]; 15]> {
     }
 }
 
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct ControllerResult {
     pub controller: String,
     pub steps_total: usize,
@@ -119,6 +119,9 @@ pub struct Options {
     /// Controllers run at a time (0: one per core). Each controller's two sessions are
     /// independent of the others', so the outputs do not depend on it.
     pub jobs: usize,
+    /// Reuse the controllers a stopped (or earlier) case study with the same data, config and
+    /// mode finished in OUT (see [`DONE_MARK`]); only the others run.
+    pub resume: bool,
 }
 
 impl Default for Options {
@@ -128,6 +131,7 @@ impl Default for Options {
             controllers: CONTROLLERS.to_vec(),
             config: None,
             jobs: 0,
+            resume: false,
         }
     }
 }
@@ -141,13 +145,14 @@ struct Sessions<'a> {
     window: usize,
 }
 
-/// Both sessions under controller `kind`, compared with its Table II column.
+/// Both sessions under controller `kind`, compared with its Table II column; `None` when a
+/// user stop ended a session early (its outputs are written, but it is no Table II run).
 fn run_controller(
     kind: ControllerKind,
     session: &Sessions<'_>,
     out: &Path,
     o: &Options,
-) -> Result<ControllerResult> {
+) -> Result<Option<ControllerResult>> {
     let (s1, s2, window) = (session.s1, session.s2, session.window);
     let name = kind.as_str();
     let dir = out.join(name);
@@ -168,11 +173,17 @@ fn run_controller(
         save_map: ours.then(|| atlas.clone()),
         ..session_run(s1, "session1")
     })?;
+    if sum1.user_stop.is_some() {
+        return Ok(None);
+    }
     tracing::info!("bench case-study: {name}, session 2");
-    run(&RunOptions {
+    let sum2 = run(&RunOptions {
         load_map: ours.then(|| atlas.clone()),
         ..session_run(s2, "session2")
     })?;
+    if sum2.user_stop.is_some() {
+        return Ok(None);
+    }
     let mut st1 = session.steps1.to_vec();
     let mut st2 = session.steps2.to_vec();
     if let Some(col) = paper_column(kind) {
@@ -202,7 +213,7 @@ fn run_controller(
             .and_then(|v| v.as_u64())
             .unwrap_or(0)
     };
-    Ok(ControllerResult {
+    Ok(Some(ControllerResult {
         controller: name.into(),
         steps_total: steps.len(),
         steps_matched: steps.iter().filter(|s| s.matched).count(),
@@ -217,7 +228,66 @@ fn run_controller(
         steps,
         session2_known_view_frame: known_view,
         session2_localized_frame: localized,
-    })
+    }))
+}
+
+/// Written into OUT/CONTROLLER/ once both of its sessions finished: what the runs depended on
+/// ([`identity`]) and the controller's result, which `--resume` reuses.
+pub const DONE_MARK: &str = "bench-done.json";
+
+#[derive(Serialize, Deserialize)]
+struct Done {
+    identity: String,
+    result: ControllerResult,
+}
+
+/// What a controller's runs depend on besides the binary's code: the data, the config's
+/// text, the mode and the controller.
+fn identity(kind: ControllerKind, data: &Path, o: &Options) -> String {
+    let config = o.config.as_ref().map_or("(defaults)".to_string(), |c| {
+        std::fs::read_to_string(c).unwrap_or_else(|e| format!("{}: {e}", c.display()))
+    });
+    format!(
+        "homing {}\ndata {}\nthreaded {}\ncontroller {}\nconfig\n{config}",
+        env!("CARGO_PKG_VERSION"),
+        data.display(),
+        o.threaded,
+        kind.as_str()
+    )
+}
+
+/// A controller's result: reused from an earlier finished run with `--resume`, `None` when a
+/// user stop came before or during its runs, else run now (and marked done).
+fn finished_or_run(
+    kind: ControllerKind,
+    session: &Sessions<'_>,
+    data: &Path,
+    out: &Path,
+    o: &Options,
+) -> Result<Option<ControllerResult>> {
+    let mark = out.join(kind.as_str()).join(DONE_MARK);
+    let id = identity(kind, data, o);
+    if o.resume
+        && let Ok(text) = std::fs::read_to_string(&mark)
+        && let Ok(done) = serde_json::from_str::<Done>(&text)
+        && done.identity == id
+    {
+        tracing::info!("resumed: {} is finished", mark.display());
+        return Ok(Some(done.result));
+    }
+    if crate::interrupt::stop_requested() {
+        return Ok(None);
+    }
+    let Some(result) = run_controller(kind, session, out, o)? else {
+        return Ok(None);
+    };
+    let done = Done {
+        identity: id,
+        result,
+    };
+    let json = serde_json::to_vec_pretty(&done).map_err(|e| Error::invalid(e.to_string()))?;
+    crate::io::atomic_write(&mark, &json)?;
+    Ok(Some(done.result))
 }
 
 /// Runs the controllers on both sessions under `data` (session1/, session2/) and writes
@@ -237,18 +307,27 @@ pub fn case_study(data: &Path, out: &Path, o: &Options) -> Result<(CaseStudy, St
         window,
     };
     // The controllers' runs are independent: `jobs` at a time (the benchmark's case study was
-    // a quarter of its wall time, on one core), results in table order.
+    // a quarter of its wall time, on one core), results in table order. After a user stop a
+    // controller whose runs did not both finish has no result.
     let results = super::parallel_map(&o.controllers, super::resolve_jobs(o.jobs), |&kind| {
-        run_controller(kind, &session, out, o)
+        finished_or_run(kind, &session, data, out, o)
     })
     .into_iter()
     .collect::<Result<Vec<_>>>()?;
+    let unfinished = results.iter().filter(|r| r.is_none()).count();
     let cs = CaseStudy {
         data: data.to_path_buf(),
         window_frames: window,
-        controllers: results,
+        controllers: results.into_iter().flatten().collect(),
     };
-    let md = markdown(&cs, &steps1, &steps2);
+    let mut md = markdown(&cs, &steps1, &steps2);
+    if unfinished > 0 {
+        let _ = writeln!(
+            md,
+            "\n**Stopped by the user:** {unfinished} of {} controllers not finished; the same command with `--resume` runs only those.",
+            o.controllers.len()
+        );
+    }
     std::fs::create_dir_all(out).map_err(|e| Error::file(out, format!("cannot create: {e}")))?;
     crate::io::atomic_write(&out.join("case_study.md"), md.as_bytes())?;
     let json = serde_json::to_vec_pretty(&cs).map_err(|e| Error::invalid(e.to_string()))?;

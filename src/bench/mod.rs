@@ -12,10 +12,26 @@ pub mod robustness;
 pub mod robustness_plot;
 
 use crate::error::Result;
-use crate::output::Summary;
 use crate::system::{RunOptions, run};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
+
+/// Written into OUT/MODE/ once `homing bench tracking`'s run in that mode finished: what it
+/// depended on ([`tracking_identity`]), which `--resume` compares.
+const TRACKING_DONE_MARK: &str = "bench-done.txt";
+
+/// What a tracking run depends on besides its mode: the binary's version, the sequence and
+/// the config's text.
+fn tracking_identity(sequence: &Path, config: Option<&Path>) -> String {
+    let config = config.map_or("(defaults)".to_string(), |c| {
+        std::fs::read_to_string(c).unwrap_or_else(|e| format!("{}: {e}", c.display()))
+    });
+    format!(
+        "homing {}\nsequence {}\nconfig\n{config}",
+        env!("CARGO_PKG_VERSION"),
+        sequence.display()
+    )
+}
 
 /// Jobs to run at a time: `jobs`, or one per core when it is 0.
 pub(crate) fn resolve_jobs(jobs: usize) -> usize {
@@ -71,12 +87,35 @@ const STAGES: &[(&str, &str)] = &[
 
 /// Runs `sequence` deterministic and threaded, writes OUT/{deterministic,threaded}/ and
 /// returns a Markdown report.
-pub fn tracking(sequence: &Path, config: Option<&Path>, out: &Path) -> Result<String> {
-    let mut runs: Vec<(&str, Summary)> = Vec::new();
+pub fn tracking(
+    sequence: &Path,
+    config: Option<&Path>,
+    out: &Path,
+    resume: bool,
+) -> Result<String> {
+    // Each mode's summary.json, as written (a resumed mode's is read back).
+    let mut runs: Vec<(&str, serde_json::Value)> = Vec::new();
+    let mut stopped = Vec::new();
     for (mode, threaded) in [("deterministic", false), ("threaded", true)] {
+        let dir = out.join(mode);
+        let mark = dir.join(TRACKING_DONE_MARK);
+        let id = tracking_identity(sequence, config);
+        if resume
+            && std::fs::read_to_string(&mark).is_ok_and(|m| m == id)
+            && let Ok(text) = std::fs::read_to_string(dir.join("summary.json"))
+            && let Ok(summary) = serde_json::from_str(&text)
+        {
+            tracing::info!("resumed: the {mode} run is finished");
+            runs.push((mode, summary));
+            continue;
+        }
+        if crate::interrupt::stop_requested() {
+            stopped.push(mode);
+            continue;
+        }
         let opts = RunOptions {
             sequence: sequence.to_path_buf(),
-            out: out.join(mode),
+            out: dir.clone(),
             config: config.map(PathBuf::from),
             eval: true,
             command: std::env::args().collect(),
@@ -84,7 +123,15 @@ pub fn tracking(sequence: &Path, config: Option<&Path>, out: &Path) -> Result<St
             ..Default::default()
         };
         tracing::info!("bench: {mode} run of {}", sequence.display());
-        runs.push((mode, run(&opts)?));
+        let summary = run(&opts)?;
+        if summary.user_stop.is_some() {
+            stopped.push(mode);
+            continue;
+        }
+        crate::io::atomic_write(&mark, id.as_bytes())?;
+        let value = serde_json::to_value(&summary)
+            .map_err(|e| crate::error::Error::invalid(e.to_string()))?;
+        runs.push((mode, value));
     }
     let mut md = String::new();
     let _ = writeln!(md, "# homing bench tracking: {}\n", sequence.display());
@@ -103,9 +150,11 @@ pub fn tracking(sequence: &Path, config: Option<&Path>, out: &Path) -> Result<St
         let cells: Vec<String> = runs
             .iter()
             .map(|(_, s)| {
-                s.timing.get(*stage).map_or("–".into(), |t| {
-                    format!("{:.1} / {:.1} (n={})", t.median_ms, t.p90_ms, t.count)
-                })
+                let t = |k: &str| s.pointer(&format!("/timing/{stage}/{k}"))?.as_f64();
+                match (t("median_ms"), t("p90_ms"), t("count")) {
+                    (Some(m), Some(p), Some(n)) => format!("{m:.1} / {p:.1} (n={n})"),
+                    _ => "–".into(),
+                }
             })
             .collect();
         let _ = writeln!(md, "| {stage} | {what} | {} |", cells.join(" | "));
@@ -117,18 +166,31 @@ pub fn tracking(sequence: &Path, config: Option<&Path>, out: &Path) -> Result<St
     );
     let _ = writeln!(md, "|---|---|---|---|---|---|---|---|");
     for (mode, s) in &runs {
-        let fps = s.frames as f64 / s.wall_time_s.max(1e-9);
-        let rt = s.data_duration_s / s.wall_time_s.max(1e-9);
+        let f = |p: &str| s.pointer(p).and_then(|v| v.as_f64()).unwrap_or(0.0);
+        let (frames, wall, data) = (f("/frames"), f("/wall_time_s"), f("/data_duration_s"));
+        let fps = frames / wall.max(1e-9);
+        let rt = data / wall.max(1e-9);
         let ate = s
-            .evaluation
-            .as_ref()
-            .and_then(|e| e.pointer("/ate/stats/rmse"))
+            .pointer("/evaluation/ate/stats/rmse")
             .and_then(|v| v.as_f64())
             .map_or("–".into(), |v| format!("{:.3}", v * 100.0));
         let _ = writeln!(
             md,
-            "| {mode} | {} | {:.2} | {:.2} | {:.1} | {:.2} | {} | {ate} |",
-            s.frames, s.wall_time_s, s.data_duration_s, fps, rt, s.keyframes
+            "| {mode} | {frames} | {wall:.2} | {data:.2} | {fps:.1} | {rt:.2} | {} | {ate} |",
+            f("/keyframes")
+        );
+    }
+    if !stopped.is_empty() {
+        let _ = writeln!(
+            md,
+            "\n**Stopped by the user:** the {} run{} not finished; the same command with `--resume` runs only {}.",
+            stopped.join(" and "),
+            if stopped.len() > 1 { "s are" } else { " is" },
+            if stopped.len() > 1 {
+                "those"
+            } else {
+                "that one"
+            }
         );
     }
     crate::io::atomic_write(&out.join("bench_tracking.md"), md.as_bytes())?;

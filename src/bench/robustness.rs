@@ -604,6 +604,7 @@ pub fn robustness(o: &Options) -> Result<(Vec<Row>, String)> {
         controllers: controllers.clone(),
         config: o.config.clone(),
         jobs: 1,
+        resume: o.resume,
     };
     let cs_out = out.join("case-study");
     let (rows, grid_s, cs) = std::thread::scope(|sc| {

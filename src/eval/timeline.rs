@@ -27,7 +27,7 @@ pub struct ScenarioStep {
     pub expected_states: Vec<String>,
 }
 
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct StepResult {
     pub step: u32,
     pub name: String,

@@ -286,3 +286,62 @@ fn a_stopped_benchmark_keeps_its_finished_rows_and_resumes() {
         }
     }
 }
+
+/// `homing bench tracking --resume` reuses a mode's run that a finished (or stopped) benchmark
+/// with the same sequence and config ran, and runs only the others; another config runs both
+/// again.
+#[test]
+fn a_tracking_benchmark_resumes_only_the_runs_not_finished() {
+    let tmp = tempfile::tempdir().unwrap();
+    let seq = tmp.path().join("desk");
+    generate_desk(&seq, 40);
+    let out = tmp.path().join("bench");
+    let config = tmp.path().join("config.toml");
+    std::fs::write(&config, "[tracker]\n").unwrap();
+    let args = |resume: bool| {
+        let mut a = vec![
+            "bench",
+            "tracking",
+            "--sequence",
+            seq.to_str().unwrap(),
+            "--config",
+            config.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        if resume {
+            a.push("--resume");
+        }
+        a
+    };
+    let (ok, _, stderr) = common::homing(&args(false));
+    assert!(ok, "{stderr}");
+    let summary = |mode: &str| std::fs::read(out.join(mode).join("summary.json")).ok();
+    let deterministic = summary("deterministic").unwrap();
+    // The threaded run as a stop leaves it: outputs written, not marked finished.
+    std::fs::remove_file(out.join("threaded/bench-done.txt")).unwrap();
+    std::fs::remove_file(out.join("threaded/summary.json")).unwrap();
+    let (ok, stdout, stderr) = common::homing(&args(true));
+    assert!(ok, "{stderr}");
+    assert!(stdout.contains("| threaded |"), "{stdout}");
+    assert_eq!(
+        summary("deterministic").unwrap(),
+        deterministic,
+        "a finished run was run again"
+    );
+    assert!(
+        summary("threaded").is_some(),
+        "the unfinished run did not run"
+    );
+    // Another config: nothing is reused (each run's mark names the config it ran with).
+    std::fs::write(&config, "[tracker]\n# changed\n").unwrap();
+    let (ok, _, stderr) = common::homing(&args(true));
+    assert!(ok, "{stderr}");
+    for mode in ["deterministic", "threaded"] {
+        let mark = std::fs::read_to_string(out.join(mode).join("bench-done.txt")).unwrap();
+        assert!(
+            mark.contains("# changed"),
+            "{mode} was not run again: {mark}"
+        );
+    }
+}
