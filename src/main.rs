@@ -127,6 +127,10 @@ enum BenchCmd {
         /// Output folder.
         #[arg(long, default_value = "out/bench-memory")]
         out: PathBuf,
+        /// Reuse the runs that a stopped (Ctrl-C) or earlier benchmark with the same sequence
+        /// and config finished in OUT; only the others run.
+        #[arg(long)]
+        resume: bool,
     },
     /// Run a sequence deterministic and threaded; print per-stage ms/frame, throughput
     /// against real time and ATE; write OUT/bench_tracking.md and both runs' outputs.
@@ -443,15 +447,23 @@ fn main() {
             repeats,
             config,
             out,
-        }) => homing::bench::memory::memory(&homing::bench::memory::Options {
-            sequence,
-            repeats,
-            out,
-            config,
-            exe: None,
-        })
-        .map(|md| print!("\n{md}"))
-        .map_err(Into::into),
+            resume,
+        }) => {
+            // Ctrl-C: the run under way stops, no new one starts, the finished rows are written.
+            if let Err(e) = homing::interrupt::install() {
+                tracing::warn!("{e}: Ctrl-C will kill the benchmark");
+            }
+            homing::bench::memory::memory(&homing::bench::memory::Options {
+                sequence,
+                repeats,
+                out,
+                config,
+                exe: None,
+                resume,
+            })
+            .map(|md| print!("\n{md}"))
+            .map_err(Into::into)
+        }
         Cmd::Bench(BenchCmd::Tracking {
             sequence,
             config,

@@ -21,7 +21,14 @@ pub struct Options {
     pub config: Option<PathBuf>,
     /// The homing binary (default: this one).
     pub exe: Option<PathBuf>,
+    /// Reuse the runs a stopped (or earlier) benchmark with the same sequence, config and
+    /// version finished in OUT (see [`DONE_MARK`]); only the others run.
+    pub resume: bool,
 }
+
+/// Written into OUT/run-xN/ once that run finished: what it depended on, which `--resume`
+/// compares. A run a user stop interrupted gets none.
+const DONE_MARK: &str = "bench-done.txt";
 
 /// One run of the benchmark.
 #[derive(Debug, Clone, serde::Serialize)]
@@ -54,6 +61,7 @@ pub fn memory(o: &Options) -> Result<String> {
     std::fs::create_dir_all(&o.out)
         .map_err(|e| Error::file(&o.out, format!("cannot create: {e}")))?;
     let mut rows = Vec::new();
+    let mut stopped = Vec::new();
     for &r in &o.repeats {
         let dir = o.out.join(format!("sequence-x{r}"));
         std::fs::create_dir_all(&dir)
@@ -87,15 +95,41 @@ pub fn memory(o: &Options) -> Result<String> {
         if let Some(c) = &o.config {
             cmd.arg("--config").arg(c);
         }
-        tracing::info!("bench memory: {r}× the sequence");
-        let status = cmd
-            .status()
-            .map_err(|e| Error::invalid(format!("cannot start {}: {e}", exe.display())))?;
-        if !status.success() {
-            return Err(Error::invalid(format!(
-                "the {r}× run failed ({status}); see {}",
-                run_out.display()
-            )));
+        let config = o.config.as_ref().map_or("(defaults)".to_string(), |c| {
+            std::fs::read_to_string(c).unwrap_or_else(|e| format!("{}: {e}", c.display()))
+        });
+        let identity = format!(
+            "homing {}\nsequence {}\nplays {r}\nconfig\n{config}",
+            env!("CARGO_PKG_VERSION"),
+            o.sequence.display()
+        );
+        let mark = run_out.join(DONE_MARK);
+        let finished = o.resume && std::fs::read_to_string(&mark).is_ok_and(|m| m == identity);
+        if finished {
+            tracing::info!("resumed: the {r}× run is finished");
+        } else if crate::interrupt::stop_requested() {
+            stopped.push(r);
+            continue;
+        } else {
+            tracing::info!("bench memory: {r}× the sequence");
+            let status = cmd
+                .status()
+                .map_err(|e| Error::invalid(format!("cannot start {}: {e}", exe.display())))?;
+            // Ctrl-C reaches the child too: it stops, writes its outputs and exits 130; that
+            // run is no measurement of its length.
+            if status.code() == Some(crate::interrupt::EXIT_STATUS)
+                || crate::interrupt::stop_requested()
+            {
+                stopped.push(r);
+                continue;
+            }
+            if !status.success() {
+                return Err(Error::invalid(format!(
+                    "the {r}× run failed ({status}); see {}",
+                    run_out.display()
+                )));
+            }
+            crate::io::atomic_write(&mark, identity.as_bytes())?;
         }
         let path = run_out.join("summary.json");
         let text = crate::error::read_text(&path)?;
@@ -133,6 +167,14 @@ pub fn memory(o: &Options) -> Result<String> {
             r.peak_rss_mb / base,
             r.wall_s,
             1e3 * r.wall_s / r.frames.max(1) as f64
+        );
+    }
+    if !stopped.is_empty() {
+        let plays: Vec<String> = stopped.iter().map(|r| format!("{r}×")).collect();
+        let _ = writeln!(
+            md,
+            "\n**Stopped by the user:** the {} runs not finished; the same command with `--resume` runs only those.",
+            plays.join(", ")
         );
     }
     crate::io::atomic_write(&o.out.join("memory.md"), md.as_bytes())?;

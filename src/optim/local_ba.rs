@@ -322,7 +322,19 @@ impl Structure {
             blocks.push((c, c));
         }
         let mut pair_start = Vec::with_capacity(n_point + 1);
-        let mut pairs = Vec::new();
+        // Sized exactly: with many cameras sharing points (Final's BA with frames) the pairs
+        // are the solver's largest array, and growing it by doubling would peak at up to
+        // three times its size.
+        let n_pairs: usize = (0..n_point)
+            .map(|p| {
+                let m = point_obs[point_obs_start[p]..point_obs_start[p + 1]]
+                    .iter()
+                    .filter(|&&o| cam_var[problem.observations[o].camera].is_some())
+                    .count();
+                m * (m + 1) / 2
+            })
+            .sum();
+        let mut pairs = Vec::with_capacity(n_pairs);
         for p in 0..n_point {
             pair_start.push(pairs.len());
             let obs = &point_obs[point_obs_start[p]..point_obs_start[p + 1]];
@@ -371,7 +383,8 @@ impl Structure {
         }
         let n = 6 * n_cam;
         let mut col_ptr = Vec::with_capacity(n + 1);
-        let mut row_idx = Vec::new();
+        // 21 values in a diagonal block's upper triangle, 36 in any other block.
+        let mut row_idx = Vec::with_capacity(21 * n_cam + 36 * (blocks.len() - n_cam));
         let mut block_offsets = vec![[0usize; 6]; blocks.len()];
         col_ptr.push(0);
         for (cj, col_blocks) in by_col.iter_mut().enumerate() {
