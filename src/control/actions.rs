@@ -1813,12 +1813,13 @@ impl StateMachine {
                 continue;
             };
             if r.termination == crate::optim::Termination::CutOff {
+                let why = refinement_cut_reason();
                 tracing::warn!(
-                    "final BA of map {id} cut short after {} iterations (time limit or second stop signal)",
+                    "Final's refinement {why}: map {id}'s BA stopped after {} iterations",
                     r.iterations
                 );
                 self.refinement_cut.get_or_insert_with(|| {
-                    format!("map {id}'s BA cut short after {} iterations", r.iterations)
+                    format!("{why}: map {id}'s BA stopped after {} iterations", r.iterations)
                 });
             }
             tracing::info!(
@@ -1849,13 +1850,12 @@ impl StateMachine {
     /// Whether Final's refinement stops before map `next` (after a user stop: its time limit
     /// is over, or a second signal came); records why once.
     fn refinement_cut_short(&mut self, next: MapId) -> bool {
-        let why = if crate::interrupt::skip_refinement() {
-            "skipped by a second stop signal"
-        } else if self
-            .refinement_deadline
-            .is_some_and(|d| std::time::Instant::now() >= d)
+        let why = if crate::interrupt::skip_refinement()
+            || self
+                .refinement_deadline
+                .is_some_and(|d| std::time::Instant::now() >= d)
         {
-            "cut short by mapping.final_refinement_max_s"
+            refinement_cut_reason()
         } else {
             return false;
         };
@@ -1867,6 +1867,15 @@ impl StateMachine {
             None => cut,
         });
         true
+    }
+}
+
+/// Why Final's refinement stopped early: a second stop signal, else its time limit.
+fn refinement_cut_reason() -> &'static str {
+    if crate::interrupt::skip_refinement() {
+        "skipped by a second stop signal"
+    } else {
+        "cut short by mapping.final_refinement_max_s"
     }
 }
 
