@@ -1819,7 +1819,10 @@ impl StateMachine {
                     r.iterations
                 );
                 self.refinement_cut.get_or_insert_with(|| {
-                    format!("{why}: map {id}'s BA stopped after {} iterations", r.iterations)
+                    format!(
+                        "{why}: map {id}'s BA stopped after {} iterations",
+                        r.iterations
+                    )
                 });
             }
             tracing::info!(

@@ -194,6 +194,38 @@ fn an_isolated_foreign_frame_is_refused_and_tracking_goes_on() {
     assert_eq!(s.frames_with_pose, s.frames - 1);
 }
 
+/// The same foreign frame right after a recording gap (frame 59 dropped, as real recordings
+/// skip frames): the prediction spans two intervals, and the frame is still judged against it
+/// and refused. Before, only a frame directly after a tracked one was judged; on fr1_desk such
+/// a frame was tracked 32° off, made a keyframe, and cost the next three real frames.
+#[test]
+fn a_foreign_frame_after_a_skipped_frame_is_refused() {
+    use homing::io::perturb::PerturbationSpec;
+    let run = common::run_small(
+        "desk",
+        PerturbationSpec {
+            drops: vec!["59:60".parse().unwrap()],
+            faults: vec!["foreign@60".parse().unwrap()],
+            ..Default::default()
+        },
+    );
+    let (seq, out, s) = (&run.seq, &run.out, &run.summary);
+    let p = serde_json::to_value(&s.perturbations).unwrap();
+    assert_eq!(p["faults"][0]["source"], 119, "the fault draw changed: {p}");
+    assert_eq!(p["dropped_frames"], 1, "{p}");
+    let stamps = stamps(seq);
+    let trajectory = std::fs::read_to_string(out.join("trajectory.txt")).unwrap();
+    let posed = |i: usize| trajectory.lines().any(|l| l.starts_with(&stamps[i]));
+    assert!(!posed(59), "the dropped frame 59 has a pose");
+    assert!(!posed(60), "the foreign frame 60 has a pose");
+    assert!(
+        posed(58) && posed(61),
+        "a real frame next to it lost its pose"
+    );
+    assert_eq!(s.maps, 1);
+    assert_eq!(s.frames_with_pose, s.frames - 1);
+}
+
 /// Final's batch refinement holds tracked frames as cameras, not only keyframes. Full-size
 /// `desk` with a 1 s kidnapping at 4.5 s: the local BA of the keyframe made at frame 128,
 /// just before the drop, slides it by 2 cm; the camera relocalizes next to it and stays
