@@ -244,9 +244,7 @@ struct Done {
 /// What a controller's runs depend on besides the binary's code: the data, the config's
 /// text, the mode and the controller.
 fn identity(kind: ControllerKind, data: &Path, o: &Options) -> String {
-    let config = o.config.as_ref().map_or("(defaults)".to_string(), |c| {
-        std::fs::read_to_string(c).unwrap_or_else(|e| format!("{}: {e}", c.display()))
-    });
+    let config = super::config_text(o.config.as_deref());
     format!(
         "homing {}\ndata {}\nthreaded {}\ncontroller {}\nconfig\n{config}",
         env!("CARGO_PKG_VERSION"),

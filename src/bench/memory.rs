@@ -95,9 +95,7 @@ pub fn memory(o: &Options) -> Result<String> {
         if let Some(c) = &o.config {
             cmd.arg("--config").arg(c);
         }
-        let config = o.config.as_ref().map_or("(defaults)".to_string(), |c| {
-            std::fs::read_to_string(c).unwrap_or_else(|e| format!("{}: {e}", c.display()))
-        });
+        let config = super::config_text(o.config.as_deref());
         let identity = format!(
             "homing {}\nsequence {}\nplays {r}\nconfig\n{config}",
             env!("CARGO_PKG_VERSION"),

@@ -23,14 +23,20 @@ const TRACKING_DONE_MARK: &str = "bench-done.txt";
 /// What a tracking run depends on besides its mode: the binary's version, the sequence and
 /// the config's text.
 fn tracking_identity(sequence: &Path, config: Option<&Path>) -> String {
-    let config = config.map_or("(defaults)".to_string(), |c| {
-        std::fs::read_to_string(c).unwrap_or_else(|e| format!("{}: {e}", c.display()))
-    });
+    let config = config_text(config);
     format!(
         "homing {}\nsequence {}\nconfig\n{config}",
         env!("CARGO_PKG_VERSION"),
         sequence.display()
     )
+}
+
+/// A config file's text, for the identity of a benchmark's finished runs that `--resume`
+/// compares (a run with another config is not reused).
+pub(crate) fn config_text(config: Option<&Path>) -> String {
+    config.map_or("(defaults)".to_string(), |c| {
+        std::fs::read_to_string(c).unwrap_or_else(|e| format!("{}: {e}", c.display()))
+    })
 }
 
 /// Jobs to run at a time: `jobs`, or one per core when it is 0.
