@@ -1141,7 +1141,7 @@ impl MapMerger {
             .obs
             .iter()
             .filter_map(|o| {
-                let (pid, y, octave) = (o.point, o.row, o.octave);
+                let pid = o.point;
                 let uv = Vector2::new(o.uv[0] as f64, o.uv[1] as f64);
                 let p = map.points.get(&pid)?;
                 let d = o.depth as f64;
@@ -1154,8 +1154,8 @@ impl MapMerger {
                         } else {
                             Observation::Mono { uv }
                         },
-                        info: octave_information(octave as u32),
-                        shutter: self.geo.shutter(&twist, y as f64),
+                        info: octave_information(o.octave as u32),
+                        shutter: self.geo.shutter(&twist, o.row as f64),
                     },
                 ))
             })

@@ -196,9 +196,9 @@ impl Tracker {
         if !able {
             return self.lost(m);
         }
-        // A frame right after a tracked one that lands far off the constant-velocity
+        // A frame just after a tracked one that lands far off the constant-velocity
         // prediction is a false measurement (an image from elsewhere that the map also
-        // explains): no camera turns or shifts that much between two frames. Its pose is not
+        // explains): no camera turns or shifts that much in a few frame intervals. Its pose is not
         // used and the motion model predicts the next frame across it. Only a frame within
         // `MAX_JUDGED_INTERVALS` of a tracked one is judged, with the tolerances growing with
         // the intervals (across a longer gap the prediction is too loose), and never two in a

@@ -1770,7 +1770,7 @@ impl StateMachine {
             });
         let ids: Vec<MapId> = self.atlas.maps.keys().copied().collect();
         for id in ids {
-            if self.refinement_cut_short(id) {
+            if self.refinement_cut_short(id, cutoff) {
                 break;
             }
             let map = self.atlas.maps.get_mut(&id).expect("listed");
@@ -1850,18 +1850,13 @@ impl StateMachine {
         }
     }
 
-    /// Whether Final's refinement stops before map `next` (after a user stop: its time limit
-    /// is over, or a second signal came); records why once.
-    fn refinement_cut_short(&mut self, next: MapId) -> bool {
-        let why = if crate::interrupt::skip_refinement()
-            || self
-                .refinement_deadline
-                .is_some_and(|d| std::time::Instant::now() >= d)
-        {
-            refinement_cut_reason()
-        } else {
+    /// Whether Final's refinement stops before map `next` (`cutoff`, set after a user stop, is
+    /// reached: its time limit is over, or a second signal came); records why.
+    fn refinement_cut_short(&mut self, next: MapId, cutoff: Option<crate::optim::Cutoff>) -> bool {
+        if !cutoff.is_some_and(|c| c.reached()) {
             return false;
-        };
+        }
+        let why = refinement_cut_reason();
         let unrefined = self.atlas.maps.range(next..).count();
         tracing::warn!("Final's refinement {why}: {unrefined} maps keep their tracked poses");
         let cut = format!("{why}: {unrefined} maps not refined");
