@@ -256,10 +256,12 @@ struct Structure {
     /// Observations of each free point, CSR style: `point_obs[point_obs_start[p]..[p+1]]`.
     point_obs_start: Vec<usize>,
     point_obs: Vec<usize>,
-    /// Per free point, the Schur block updates: `(i, j, block)` where `i`, `j` index that
-    /// point's observations (within `point_obs`) with free cameras `ci ≤ cj`.
+    /// Per free point, the block of each Schur update, in the order [`for_each_pair`] visits
+    /// the point's pairs of observations: the pairs themselves are implied by that order, so
+    /// only 4 bytes a pair are kept (in Final's BA with frames, where every camera sees the
+    /// same points, the pairs are the solver's largest array).
     pair_start: Vec<usize>,
-    pairs: Vec<(u32, u32, u32)>,
+    pairs: Vec<u32>,
     /// Block `(row cam, col cam)` of the upper triangle of the reduced system.
     blocks: Vec<(usize, usize)>,
     /// Index of the diagonal block of each free camera.
@@ -338,25 +340,14 @@ impl Structure {
         for p in 0..n_point {
             pair_start.push(pairs.len());
             let obs = &point_obs[point_obs_start[p]..point_obs_start[p + 1]];
-            for (i, &oi) in obs.iter().enumerate() {
-                let Some(ci) = cam_var[problem.observations[oi].camera] else {
-                    continue;
-                };
-                for (j, &oj) in obs.iter().enumerate() {
-                    let Some(cj) = cam_var[problem.observations[oj].camera] else {
-                        continue;
-                    };
-                    if ci > cj {
-                        continue;
-                    }
-                    let next = blocks.len();
-                    let b = *block_index.entry((ci, cj)).or_insert(next);
-                    if b == next {
-                        blocks.push((ci, cj));
-                    }
-                    pairs.push((i as u32, j as u32, b as u32));
+            for_each_pair(problem, &cam_var, obs, |_, _, ci, cj| {
+                let next = blocks.len();
+                let b = *block_index.entry((ci, cj)).or_insert(next);
+                if b == next {
+                    blocks.push((ci, cj));
                 }
-            }
+                pairs.push(b as u32);
+            });
         }
         pair_start.push(pairs.len());
         let edge_block = problem
@@ -424,6 +415,51 @@ impl Structure {
             symbolic,
             n_values,
         })
+    }
+}
+
+/// Calls `f(i, j, ci, cj)` for each pair of a point's observations `obs` (`i`, `j` index
+/// `obs`) whose cameras are free with variables `ci ≤ cj`, always in the same order: the
+/// order [`Structure::pairs`] is stored in.
+fn for_each_pair(
+    problem: &BaProblem,
+    cam_var: &[Option<usize>],
+    obs: &[usize],
+    mut f: impl FnMut(usize, usize, usize, usize),
+) {
+    for (i, &oi) in obs.iter().enumerate() {
+        let Some(ci) = cam_var[problem.observations[oi].camera] else {
+            continue;
+        };
+        for (j, &oj) in obs.iter().enumerate() {
+            let Some(cj) = cam_var[problem.observations[oj].camera] else {
+                continue;
+            };
+            if ci <= cj {
+                f(i, j, ci, cj);
+            }
+        }
+    }
+}
+
+impl Structure {
+    /// Applies `f(value, row, column)` to each stored value of block `b` of the reduced
+    /// system (row and column within the 6×6 block; a diagonal block stores its upper
+    /// triangle only).
+    fn block_values(
+        &self,
+        b: usize,
+        mut f: impl FnMut(&mut f64, usize, usize),
+        values: &mut [f64],
+    ) {
+        let (ci, cj) = self.blocks[b];
+        for c in 0..6 {
+            let rows = if ci == cj { c + 1 } else { 6 };
+            let off = self.block_offsets[b][c];
+            for (r, v) in values[off..off + rows].iter_mut().enumerate() {
+                f(v, r, c);
+            }
+        }
     }
 }
 
@@ -620,14 +656,19 @@ fn schur_step(
     }
     let mut dx_c = vec![Vector6::zeros(); st.n_cam];
     if let Some((sym, llt_sym)) = &st.symbolic {
-        let mut blocks = vec![Matrix6::zeros(); st.blocks.len()];
+        // The reduced system is summed straight into its CSC values (no 6×6 copy of each
+        // block first: with every camera seeing the same points that copy is as large as the
+        // values themselves).
+        let mut values = vec![0.0; st.n_values];
         let mut rhs: Vec<f64> = Vec::with_capacity(6 * st.n_cam);
         for c in 0..st.n_cam {
-            blocks[st.diag_block[c]] = ne.h_cc[c] + Matrix6::identity() * lambda;
+            let m = ne.h_cc[c] + Matrix6::identity() * lambda;
+            st.block_values(st.diag_block[c], |v, r, k| *v += m[(r, k)], &mut values);
         }
         for (k, b) in st.edge_block.iter().enumerate() {
             if let Some(b) = b {
-                blocks[*b] += ne.h_edge[k];
+                let m = &ne.h_edge[k];
+                st.block_values(*b, |v, r, c| *v += m[(r, c)], &mut values);
             }
         }
         let mut rhs_c: Vec<Vector6<f64>> = ne.b_c.iter().map(|b| -b).collect();
@@ -643,20 +684,12 @@ fn schur_step(
                 }
                 y.push(yk);
             }
-            for &(i, j, b) in &st.pairs[st.pair_start[p]..st.pair_start[p + 1]] {
-                blocks[b as usize] -= y[i as usize] * ne.h_cp[obs[j as usize]].transpose();
-            }
-        }
-        let mut values = vec![0.0; st.n_values];
-        for (b, &(ci, cj)) in st.blocks.iter().enumerate() {
-            let m = &blocks[b];
-            for c in 0..6 {
-                let rows = if ci == cj { c + 1 } else { 6 };
-                let off = st.block_offsets[b][c];
-                for r in 0..rows {
-                    values[off + r] = m[(r, c)];
-                }
-            }
+            let mut blocks = st.pairs[st.pair_start[p]..st.pair_start[p + 1]].iter();
+            for_each_pair(problem, &st.cam_var, obs, |i, j, _, _| {
+                let b = *blocks.next().expect("one block per pair, as built") as usize;
+                let m = y[i] * ne.h_cp[obs[j]].transpose();
+                st.block_values(b, |v, r, c| *v -= m[(r, c)], &mut values);
+            });
         }
         let mat = SparseColMatRef::new(sym.as_ref(), &values);
         let llt = Llt::try_new_with_symbolic(llt_sym.clone(), mat, Side::Upper).ok()?;
