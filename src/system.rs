@@ -93,21 +93,13 @@ impl std::fmt::Debug for ProgressHook {
 
 /// Runs a whole sequence and writes the run outputs. On a bad frame the outputs gathered so far
 /// are still written (with the error recorded) before the error is returned.
+///
+/// The steps: the config, the input (sequence, prepared frames and features, perturbations),
+/// Init (the controller, with a saved atlas), the frame loop, Final, the frames' poses
+/// resolved through the final keyframes, the saved atlas, evaluation, the output files.
 pub fn run(opts: &RunOptions) -> Result<Summary> {
     let wall = Instant::now();
-    let mut config = match &opts.config {
-        Some(p) => Config::load(p)?,
-        None => Config::default(),
-    };
-    let mut spec = opts.perturb.clone();
-    spec.mono |= config.sequence.mono;
-    config.sequence.mono = spec.mono;
-    if let Some(k) = opts.controller {
-        config.controller.kind = k;
-    }
-    if opts.no_loop_closing {
-        config.loop_closing.enabled = false;
-    }
+    let (config, spec) = run_config(opts)?;
     let (seq, camera, source) = open_sequence(opts, &config, spec.mono)?;
     if seq.unassociated() > 0 {
         tracing::warn!(
@@ -140,9 +132,7 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
         )?),
         None => None,
     };
-    let mut extraction_reused_ms = 0.0;
     let out = RunOutputs::create(&opts.out)?;
-
     let intr = camera.intrinsics();
     let mut pre = Preprocessor::new(&camera, &config.orb)?;
     let mut viz = match &opts.rerun {
@@ -153,15 +143,116 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
         )?),
         None => None,
     };
-    let mut machine = StateMachine::new(&config, &camera, intr);
+    let mut machine = init(opts, &config, &camera, &pre, spec.mono)?;
+    let mut timing = Timing::default();
+    let input = Input {
+        opts,
+        frames,
+        perturbed: &perturbed,
+        camera: &camera,
+        mono: spec.mono,
+    };
+    let mut rec = frame_loop(
+        &input,
+        &mut pre,
+        features.as_mut(),
+        viz.as_mut(),
+        &mut machine,
+        &mut timing,
+    );
+    tracing::info!(
+        "low-threshold FAST found key points on {} of {} frames",
+        pre.weak_passes,
+        rec.delivered
+    );
+    let state = final_state(&mut machine, &mut rec, &mut timing);
+    let posed = resolve_poses(&machine, &mut rec, opts.mcap_log);
+    if let Some(path) = &opts.save_map {
+        // Final: the atlas is stored for a later session.
+        machine
+            .atlas
+            .save(path, AtlasCamera::from(&camera), spec.mono)?;
+        tracing::info!("atlas saved to {}", path.display());
+    }
+    let closures = closure_rows(&machine);
+    let keyframes = keyframe_rows(&machine);
+    let evaluation = if opts.eval {
+        evaluate(
+            &seq,
+            &posed.trajectory,
+            &spec,
+            &perturbed.plan,
+            &closures,
+            &posed.pose_maps,
+            &rec.unreadable.iter().map(|u| u.frame).collect(),
+        )?
+    } else {
+        None
+    };
+    let n = perturbed.len();
+    let mut fin = Finished {
+        rec,
+        state,
+        posed,
+        closures,
+        keyframes,
+        evaluation,
+        timing,
+    };
+    let setup = Setup {
+        config,
+        camera,
+        source,
+    };
+    let summary = summarize(
+        opts,
+        (&seq, n),
+        setup,
+        &perturbed.plan,
+        &machine,
+        &mut fin,
+        wall,
+    );
+    write_outputs(&out, opts, &fin, &summary, viz)?;
+    match fin.rec.failure {
+        Some(e) => Err(e),
+        None => Ok(summary),
+    }
+}
+
+/// The config a run uses: the file (or the defaults) with the command line's overrides.
+fn run_config(opts: &RunOptions) -> Result<(Config, PerturbationSpec)> {
+    let mut config = match &opts.config {
+        Some(p) => Config::load(p)?,
+        None => Config::default(),
+    };
+    let mut spec = opts.perturb.clone();
+    spec.mono |= config.sequence.mono;
+    config.sequence.mono = spec.mono;
+    if let Some(k) = opts.controller {
+        config.controller.kind = k;
+    }
+    if opts.no_loop_closing {
+        config.loop_closing.enabled = false;
+    }
+    Ok((config, spec))
+}
+
+/// Init: the controller, and (its entry) a saved atlas from an earlier session.
+fn init(
+    opts: &RunOptions,
+    config: &Config,
+    camera: &crate::config::CameraConfig,
+    pre: &Preprocessor,
+    mono: bool,
+) -> Result<StateMachine> {
+    let mut machine = StateMachine::new(config, camera, camera.intrinsics());
     machine.set_surface_rays(pre.surface_rays());
     if opts.threaded {
         machine.set_threaded();
     }
-    let atlas_camera = AtlasCamera::from(&camera);
-    // Init's entry: a saved atlas from an earlier session.
     if let Some(path) = &opts.load_map {
-        let atlas = Atlas::load(path, &atlas_camera, spec.mono)?;
+        let atlas = Atlas::load(path, &AtlasCamera::from(camera), mono)?;
         tracing::info!(
             "loaded atlas {}: {} maps, {} keyframes",
             path.display(),
@@ -170,25 +261,94 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
         );
         machine.load_atlas(atlas);
     }
-    let mut timing = Timing::default();
-    let mut states: Vec<StateRow> = Vec::new();
-    // Frame poses are kept relative to their reference keyframe, so that the final trajectory
-    // follows the keyframes' optimised poses (as ORB-SLAM does) and frames of merged maps end
-    // up in the merged frame. Keyframe ids are unique across the atlas.
-    let mut relative: Vec<(usize, f64, KfId, Isometry3<f64>)> = Vec::new();
-    let mut poses_discarded = 0usize;
-    let mut frame_stats: Vec<crate::mcap_log::FrameStats> = Vec::new();
-    let mut failure = None;
-    let n = perturbed.len();
-    let mut delivered = 0usize;
-    let mut user_stop: Option<(usize, f64)> = None;
-    let mut unreadable: Vec<crate::output::UnreadableFrame> = Vec::new();
+    Ok(machine)
+}
+
+/// What the frame loop reads.
+struct Input<'a> {
+    opts: &'a RunOptions,
+    frames: &'a (dyn FrameSource + Sync),
+    perturbed: &'a PerturbedSequence<'a>,
+    camera: &'a crate::config::CameraConfig,
+    mono: bool,
+}
+
+/// What the frame loop recorded, for Final and the outputs.
+#[derive(Default)]
+struct Recorded {
+    states: Vec<StateRow>,
+    /// Frame poses are kept relative to their reference keyframe, so that the final trajectory
+    /// follows the keyframes' optimised poses (as ORB-SLAM does) and frames of merged maps end
+    /// up in the merged frame. Keyframe ids are unique across the atlas.
+    relative: Vec<(usize, f64, KfId, Isometry3<f64>)>,
+    poses_discarded: usize,
+    frame_stats: Vec<crate::mcap_log::FrameStats>,
+    /// The input error that ended the loop (`--strict-input`, or a frame that could not be
+    /// processed).
+    failure: Option<Error>,
+    delivered: usize,
+    /// The frame after which a user stop (SIGINT/SIGTERM) ended the loop.
+    user_stop: Option<(usize, f64)>,
+    unreadable: Vec<crate::output::UnreadableFrame>,
+    extraction_reused_ms: f64,
+}
+
+impl Recorded {
+    /// states.csv's rows for one frame: its state, or one row per transition it made.
+    fn record_states(&mut self, frame: &crate::io::tum::Frame, out: &crate::control::StepOutput) {
+        if self.states.is_empty() && out.transitions.is_empty() {
+            self.states.push(StateRow {
+                frame: frame.index,
+                t: frame.t,
+                state: out.state.clone(),
+                transition: Some(Transition {
+                    from: "(start)".into(),
+                    trigger: "start".into(),
+                }),
+                flags: out.flags,
+                map: None,
+            });
+        } else if out.transitions.is_empty() {
+            self.states.push(StateRow {
+                frame: frame.index,
+                t: frame.t,
+                state: out.state.clone(),
+                transition: None,
+                flags: out.flags,
+                map: None,
+            });
+        }
+        for t in &out.transitions {
+            self.states.push(StateRow {
+                frame: frame.index,
+                t: frame.t,
+                state: t.to.clone(),
+                transition: Some(t.transition.clone()),
+                flags: t.flags,
+                map: None,
+            });
+        }
+    }
+}
+
+/// The frame loop: one controller step per delivered frame, until the data ends, the
+/// controller stops, an input error ends the run or the user stops it.
+fn frame_loop(
+    input: &Input<'_>,
+    pre: &mut Preprocessor,
+    mut features: Option<&mut crate::io::features::Features>,
+    mut viz: Option<&mut crate::viz::Visualizer>,
+    machine: &mut StateMachine,
+    timing: &mut Timing,
+) -> Recorded {
+    let mut rec = Recorded::default();
+    let n = input.perturbed.len();
     // Images are decoded on a loader thread a few frames ahead (in both modes: it changes
     // when a frame is read, never what is computed from it).
     std::thread::scope(|scope| {
         let (tx, rx) = std::sync::mpsc::sync_channel(4);
-        let perturbed = &perturbed;
-        let strict = opts.strict_input;
+        let perturbed = input.perturbed;
+        let strict = input.opts.strict_input;
         scope.spawn(move || {
             let mut frames = perturbed.frames();
             loop {
@@ -207,64 +367,64 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
                 Ok(f) => f,
                 // A frame on disk that cannot be read is a failed measurement, which the state
                 // machine meets like a black frame: the run goes on.
-                Err(e) if !opts.strict_input => {
-                    let index = perturbed.plan.delivered[delivered];
-                    let t = frames.timestamp(index);
+                Err(e) if !input.opts.strict_input => {
+                    let index = perturbed.plan.delivered[rec.delivered];
+                    let t = input.frames.timestamp(index);
                     tracing::warn!(
                         "frame {index}: {e}: taken as a failed measurement (--strict-input stops instead)"
                     );
-                    unreadable.push(crate::output::UnreadableFrame {
+                    rec.unreadable.push(crate::output::UnreadableFrame {
                         frame: index,
                         t,
                         error: e.to_string(),
                     });
-                    failed_measurement(index, t, &camera, spec.mono)
+                    failed_measurement(index, t, input.camera, input.mono)
                 }
                 Err(e) => {
-                    failure = Some(e);
+                    rec.failure = Some(e);
                     break;
                 }
             };
-            delivered += 1;
+            rec.delivered += 1;
             let t_frame = Instant::now();
             // An unperturbed frame's features from the file: the same measurement, and the
             // extraction time it took when the file was written.
             let reused = features
-                .as_mut()
+                .as_deref_mut()
                 .filter(|_| perturbed.plan.fault(frame.index).is_none())
                 .and_then(|f| f.take(frame.index));
             let reused_ms = reused.as_ref().map_or(0.0, |e| e.ms);
             let m = match reused {
                 Some(mut e) => {
-                    if spec.mono {
+                    if input.mono {
                         e.m.depth.iter_mut().for_each(|d| *d = 0.0);
                         e.m.surface.clear();
                     }
                     pre.weak_passes += e.weak as usize;
                     timing.record("preprocess", e.ms);
-                    extraction_reused_ms += e.ms;
+                    rec.extraction_reused_ms += e.ms;
                     e.m
                 }
                 None => match timing.time("preprocess", || pre.process(&frame)) {
                     Ok(m) => m,
                     Err(e) => {
-                        failure = Some(e);
+                        rec.failure = Some(e);
                         break;
                     }
                 },
             };
             let pre_ms = timing.last("preprocess").unwrap_or(0.0);
             let tracked = timing.count("track");
-            let counts = opts.mcap_timing.then(|| timing.counts());
-            let out = machine.step(&m, &mut timing);
+            let counts = input.opts.mcap_timing.then(|| timing.counts());
+            let out = machine.step(&m, timing);
             timing.record("frame", t_frame.elapsed().as_secs_f64() * 1e3 + reused_ms);
             // The front end's budget: extraction + tracking of one frame (mapping excluded).
             if timing.count("track") > tracked {
                 let track_ms = timing.last("track").unwrap_or(0.0);
                 timing.record("extract_track", pre_ms + track_ms);
             }
-            if opts.mcap_log {
-                frame_stats.push(crate::mcap_log::FrameStats {
+            if input.opts.mcap_log {
+                rec.frame_stats.push(crate::mcap_log::FrameStats {
                     frame: frame.index,
                     t: frame.t,
                     tracked_inliers: machine.track_inliers,
@@ -274,54 +434,23 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
                 });
             }
             if let Some(v) = viz.as_mut()
-                && let Err(e) = timing.time("visualize", || v.log_frame(&frame, &m, &machine, &out))
+                && let Err(e) = timing.time("visualize", || v.log_frame(&frame, &m, machine, &out))
             {
-                failure = Some(e);
+                rec.failure = Some(e);
                 break;
             }
             if let Some(from) = out.invalidated_from {
-                let before = relative.len();
-                relative.retain(|r| r.0 < from);
-                poses_discarded += before - relative.len();
+                let before = rec.relative.len();
+                rec.relative.retain(|r| r.0 < from);
+                rec.poses_discarded += before - rec.relative.len();
             }
             if let Some((rel, _, kf)) = out.pose {
-                relative.push((frame.index, frame.t, kf, rel));
+                rec.relative.push((frame.index, frame.t, kf, rel));
             }
-            if states.is_empty() && out.transitions.is_empty() {
-                states.push(StateRow {
-                    frame: frame.index,
-                    t: frame.t,
-                    state: out.state.clone(),
-                    transition: Some(Transition {
-                        from: "(start)".into(),
-                        trigger: "start".into(),
-                    }),
-                    flags: out.flags,
-                    map: None,
-                });
-            } else if out.transitions.is_empty() {
-                states.push(StateRow {
-                    frame: frame.index,
-                    t: frame.t,
-                    state: out.state.clone(),
-                    transition: None,
-                    flags: out.flags,
-                    map: None,
-                });
-            }
-            for t in &out.transitions {
-                states.push(StateRow {
-                    frame: frame.index,
-                    t: frame.t,
-                    state: t.to.clone(),
-                    transition: Some(t.transition.clone()),
-                    flags: t.flags,
-                    map: None,
-                });
-            }
-            if let Some(hook) = &opts.progress {
+            rec.record_states(&frame, &out);
+            if let Some(hook) = &input.opts.progress {
                 (hook.0)(&Progress {
-                    delivered,
+                    delivered: rec.delivered,
                     total: n,
                     state: &out.state,
                     maps: machine.atlas.maps.len(),
@@ -335,39 +464,42 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
             }
             // Interruptible: a user stop (SIGINT/SIGTERM) ends the run after this frame.
             if crate::interrupt::stop_requested() {
-                user_stop = Some((frame.index, frame.t));
+                rec.user_stop = Some((frame.index, frame.t));
                 tracing::warn!(
-                    "user stop after frame {} ({delivered} of {n} delivered): to Final",
-                    frame.index
+                    "user stop after frame {} ({} of {n} delivered): to Final",
+                    frame.index,
+                    rec.delivered
                 );
                 break;
             }
-            if delivered.is_multiple_of(100) {
+            if rec.delivered.is_multiple_of(100) {
                 tracing::info!(
-                    "frame {delivered}/{n} state {} keyframes {}",
+                    "frame {}/{n} state {} keyframes {}",
+                    rec.delivered,
                     out.state,
                     machine.atlas.n_keyframes()
                 );
             }
         }
     });
-    tracing::info!(
-        "low-threshold FAST found key points on {} of {delivered} frames",
-        pre.weak_passes
-    );
-    // End of data (or a fatal input error): Interruptible → Final.
-    let trigger = if failure.is_some() {
+    rec
+}
+
+/// Final: end of data, a fatal input error or a user stop (Interruptible → Final). Returns the
+/// state the controller ends in.
+fn final_state(machine: &mut StateMachine, rec: &mut Recorded, timing: &mut Timing) -> String {
+    let trigger = if rec.failure.is_some() {
         "input_error"
-    } else if user_stop.is_some() {
+    } else if rec.user_stop.is_some() {
         crate::control::USER_STOP
     } else {
         "end_of_data"
     };
-    let fin = machine.finish(trigger, &mut timing);
-    if let Some(last) = states.last() {
+    let fin = machine.finish(trigger, timing);
+    if let Some(last) = rec.states.last() {
         let (frame, t) = (last.frame, last.t);
         for tr in fin.transitions {
-            states.push(StateRow {
+            rec.states.push(StateRow {
                 frame,
                 t,
                 state: tr.to,
@@ -377,8 +509,21 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
             });
         }
     }
-    let state = fin.state;
-    // Resolve every frame's pose through its keyframe in the final atlas.
+    fin.state
+}
+
+/// The frames' poses, resolved through their keyframes in the final atlas.
+struct Posed {
+    trajectory: Vec<StampedPose>,
+    /// Each posed frame's stamp and map.
+    pose_maps: Vec<(f64, u32)>,
+    /// For run.mcap (`--mcap-log`).
+    posed: Vec<crate::mcap_log::PosedFrame>,
+}
+
+/// Resolves every frame's pose through its keyframe in the final atlas (Final's refinement may
+/// have re-estimated it), and names each states.csv row's map.
+fn resolve_poses(machine: &StateMachine, rec: &mut Recorded, mcap_log: bool) -> Posed {
     let kf_map: std::collections::BTreeMap<KfId, (u32, &crate::map::Keyframe)> = machine
         .atlas
         .maps
@@ -386,12 +531,12 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
         .flat_map(|m| m.keyframes.values().map(move |k| (k.id, (m.id, k))))
         .collect();
     let mut frame_map: std::collections::BTreeMap<usize, u32> = std::collections::BTreeMap::new();
-    let mut trajectory: Vec<StampedPose> = Vec::with_capacity(relative.len());
-    let mut pose_maps: Vec<(f64, u32)> = Vec::with_capacity(relative.len());
+    let mut trajectory: Vec<StampedPose> = Vec::with_capacity(rec.relative.len());
+    let mut pose_maps: Vec<(f64, u32)> = Vec::with_capacity(rec.relative.len());
     let mut posed: Vec<crate::mcap_log::PosedFrame> = Vec::new();
-    for (frame, t, kf, rel) in &relative {
+    for (frame, t, kf, rel) in &rec.relative {
         let Some((map, k)) = kf_map.get(kf) else {
-            poses_discarded += 1;
+            rec.poses_discarded += 1;
             continue;
         };
         // Final's batch refinement may have re-estimated the frame.
@@ -403,7 +548,7 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
         let pose_wc = k.pose_from_relative(rel).inverse();
         frame_map.insert(*frame, *map);
         pose_maps.push((*t, *map));
-        if opts.mcap_log {
+        if mcap_log {
             posed.push(crate::mcap_log::PosedFrame {
                 frame: *frame,
                 t: *t,
@@ -416,15 +561,19 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
             pose: pose_wc,
         });
     }
-    for row in states.iter_mut() {
+    for row in rec.states.iter_mut() {
         row.map = frame_map.get(&row.frame).copied();
     }
-    if let Some(path) = &opts.save_map {
-        // Final: the atlas is stored for a later session.
-        machine.atlas.save(path, atlas_camera.clone(), spec.mono)?;
-        tracing::info!("atlas saved to {}", path.display());
+    Posed {
+        trajectory,
+        pose_maps,
+        posed,
     }
-    let closures: Vec<ClosureRow> = machine
+}
+
+/// closures.csv's rows: a candidate still pending when the run ends expired.
+fn closure_rows(machine: &StateMachine) -> Vec<ClosureRow> {
+    machine
         .closures
         .iter()
         .cloned()
@@ -434,8 +583,12 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
             }
             c
         })
-        .collect();
-    let keyframes: Vec<(StampedPose, u32)> = machine
+        .collect()
+}
+
+/// keyframes.txt's rows: every keyframe's pose and map.
+fn keyframe_rows(machine: &StateMachine) -> Vec<(StampedPose, u32)> {
+    machine
         .atlas
         .maps
         .values()
@@ -450,22 +603,38 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
                 )
             })
         })
-        .collect();
+        .collect()
+}
 
-    let evaluation = if opts.eval {
-        evaluate(
-            &seq,
-            &trajectory,
-            &spec,
-            &perturbed.plan,
-            &closures,
-            &pose_maps,
-            &unreadable.iter().map(|u| u.frame).collect(),
-        )?
-    } else {
-        None
-    };
-    let summary = Summary {
+/// What the run was set up with, for summary.json.
+struct Setup {
+    config: Config,
+    camera: crate::config::CameraConfig,
+    source: CameraSource,
+}
+
+/// Everything a run ends with, for summary.json and the output files.
+struct Finished {
+    rec: Recorded,
+    state: String,
+    posed: Posed,
+    closures: Vec<ClosureRow>,
+    keyframes: Vec<(StampedPose, u32)>,
+    evaluation: Option<serde_json::Value>,
+    timing: Timing,
+}
+
+/// summary.json: what ran, on what, how it ended, and (with --eval) how good it is.
+fn summarize(
+    opts: &RunOptions,
+    (seq, n): (&Sequence, usize),
+    setup: Setup,
+    plan: &PerturbationPlan,
+    machine: &StateMachine,
+    fin: &mut Finished,
+    wall: Instant,
+) -> Summary {
+    Summary {
         homing_version: env!("CARGO_PKG_VERSION"),
         sequence: opts
             .mcap
@@ -473,19 +642,20 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
             .map_or_else(|| opts.sequence.clone(), |m| m.0.clone()),
         command: opts.command.clone(),
         sequence_frames: seq.len(),
-        frames: delivered,
-        frames_with_pose: trajectory.len(),
-        keyframes: keyframes.len(),
+        frames: fin.rec.delivered,
+        frames_with_pose: fin.posed.trajectory.len(),
+        keyframes: fin.keyframes.len(),
         maps: machine.atlas.maps.len(),
-        closure_candidates: closures.len(),
-        closures_rolled_back: closures
+        closure_candidates: fin.closures.len(),
+        closures_rolled_back: fin
+            .closures
             .iter()
             .filter(|c| c.verdict == "rolled-back")
             .count(),
         pools: machine.atlas.pools.len(),
         pools_rolled_back: machine.atlas.pools.iter().filter(|p| p.rolled_back).count(),
-        controller: config.controller.kind.as_str().into(),
-        poses_discarded,
+        controller: setup.config.controller.kind.as_str().into(),
+        poses_discarded: fin.rec.poses_discarded,
         map_keyframes: machine
             .atlas
             .maps
@@ -493,59 +663,76 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
             .map(|m| (m.id, m.keyframes.len()))
             .collect(),
         stop_reason: machine.stop_reason.clone(),
-        user_stop: user_stop.map(|(frame, t)| crate::output::UserStop {
+        user_stop: fin.rec.user_stop.map(|(frame, t)| crate::output::UserStop {
             frame,
             t,
-            frames_not_processed: n - delivered,
+            frames_not_processed: n - fin.rec.delivered,
             refinement: machine
                 .refinement_cut
                 .clone()
                 .unwrap_or_else(|| "complete".into()),
         }),
-        closures_accepted: closures.iter().filter(|c| c.verdict == "accepted").count(),
-        closures_rejected: closures
+        closures_accepted: fin
+            .closures
+            .iter()
+            .filter(|c| c.verdict == "accepted")
+            .count(),
+        closures_rejected: fin
+            .closures
             .iter()
             .filter(|c| c.verdict.starts_with("rejected"))
             .count(),
-        final_state: state,
-        perturbations: perturbed.plan.clone(),
-        camera,
-        camera_source: source.to_string(),
-        config,
-        timing: timing.summary(),
+        final_state: std::mem::take(&mut fin.state),
+        perturbations: plan.clone(),
+        camera: setup.camera,
+        camera_source: setup.source.to_string(),
+        config: setup.config,
+        timing: fin.timing.summary(),
         mode: if opts.threaded {
             "threaded"
         } else {
             "deterministic"
         },
-        wall_time_s: wall.elapsed().as_secs_f64() + extraction_reused_ms / 1e3,
+        wall_time_s: wall.elapsed().as_secs_f64() + fin.rec.extraction_reused_ms / 1e3,
         peak_rss_mb: peak_rss_mb(),
-        extraction_reused_s: extraction_reused_ms / 1e3,
-        data_duration_s: match (states.first(), states.last()) {
+        extraction_reused_s: fin.rec.extraction_reused_ms / 1e3,
+        data_duration_s: match (fin.rec.states.first(), fin.rec.states.last()) {
             (Some(a), Some(b)) => b.t - a.t,
             _ => 0.0,
         },
-        evaluation,
-        error: failure.as_ref().map(|e| e.to_string()),
-        frames_unreadable: unreadable.len(),
-        unreadable_frames: unreadable,
-    };
-    out.write_trajectory(&trajectory)?;
-    out.write_keyframes(&keyframes)?;
-    out.write_states(&states)?;
-    out.write_closures(&closures)?;
-    out.write_timing(&timing)?;
-    out.write_summary(&summary)?;
+        evaluation: fin.evaluation.take(),
+        error: fin.rec.failure.as_ref().map(|e| e.to_string()),
+        frames_unreadable: fin.rec.unreadable.len(),
+        unreadable_frames: std::mem::take(&mut fin.rec.unreadable),
+    }
+}
+
+/// The output files (each written atomically), and run.mcap / the rerun recording when asked.
+fn write_outputs(
+    out: &RunOutputs,
+    opts: &RunOptions,
+    fin: &Finished,
+    summary: &Summary,
+    viz: Option<crate::viz::Visualizer>,
+) -> Result<()> {
+    out.write_trajectory(&fin.posed.trajectory)?;
+    out.write_keyframes(&fin.keyframes)?;
+    out.write_states(&fin.rec.states)?;
+    out.write_closures(&fin.closures)?;
+    out.write_timing(&fin.timing)?;
+    out.write_summary(summary)?;
     if let Some(v) = viz {
         v.finish()?;
     }
     if opts.mcap_log {
-        crate::mcap_log::write(&out.path("run.mcap"), &states, &frame_stats, &posed)?;
+        crate::mcap_log::write(
+            &out.path("run.mcap"),
+            &fin.rec.states,
+            &fin.rec.frame_stats,
+            &fin.posed.posed,
+        )?;
     }
-    match failure {
-        Some(e) => Err(e),
-        None => Ok(summary),
-    }
+    Ok(())
 }
 
 /// This process's peak resident set size in MB (`VmHWM` of /proc/self/status, Linux).
