@@ -98,7 +98,7 @@ pub struct OrbConfig {
     /// where OpenCV's pixel-centre-aligned resize puts it, instead of ORB-SLAM's `x·s` (up to
     /// 1.3 px up and left). Off by default: it makes tracking more accurate, and with less
     /// drift the merge depth check no longer refuses the look-alike merge of small `aliasing`
-    /// after a kidnapping (docs/robustness-notes.md).
+    /// after a kidnapping (docs/decisions/0012-depth-weight-and-keypoint-coordinates.md).
     pub pixel_centre_levels: bool,
 }
 
@@ -441,7 +441,7 @@ pub struct ControllerConfig {
     /// mapped view is a sparse map, not an unknown place. 20° (a third of the field of view)
     /// and a 0.7 coverage floor: frames tracked while the map's points drift out of view
     /// slip by millimetres on few inliers, so mapping resumes before that (`desk` after a
-    /// drop, see docs/robustness-notes.md).
+    /// drop, see docs/decisions/0008-when-localized-hands-back-to-mapping.md).
     pub known_view_distance_m: f64,
     pub known_view_angle_deg: f64,
     /// ... or, at once and off the keyframes' viewpoints, when the tracker keeps fewer inliers

@@ -2,7 +2,7 @@
 //!
 //! Appearance (ORB) cannot relate two views of the same surfaces taken from opposite
 //! directions — a corridor walked out and back, whose legs a frame drop left unjoined (see
-//! `docs/robustness-notes.md`, `loop` one drop) — but their depth can: the walls and the floor
+//! `docs/robustness.md`, `loop` one drop) — but their depth can: the walls and the floor
 //! are the same planes. This module registers a source point set onto a target's planes and
 //! reports, with the relative pose, the registration's information matrix (the Gauss–Newton
 //! Hessian over the residual variance). A pose-graph edge built from it constrains
@@ -22,7 +22,7 @@
 //! unambiguous wide-plane pairs give no edge unless [`EdgeSearch::local_planes`] is on (then
 //! point-to-plane ICP on local planes, coarse to fine from the guess).
 //!
-//! On by default since 2026-11-27 (the README's "Depth edges in the Final refinement" has the
+//! On by default (docs/decisions/0005-depth-edges-in-the-final-refinement.md has the
 //! measurements): small `loop`'s one-drop rows are three to five times more accurate, and
 //! every row of the other sequences and the case study is unchanged. The local-plane
 //! registration stays off: on real desk-scale depth it made wrong edges, and a wrong edge

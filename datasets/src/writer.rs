@@ -186,7 +186,7 @@ pub fn camera_config(k: &Intrinsics, fps: f64, scenario: &str) -> CameraConfig {
         // The renderer exposes every pixel at once (global shutter).
         readout_s: 0.0,
         // Depth weighs as for TUM's Kinects (0.16 m measured better on these scenarios; see
-        // docs/robustness-notes.md, which also shows what it costs on `aliasing`).
+        // docs/decisions/0012-depth-weight-and-keypoint-coordinates.md).
         virtual_baseline_m: homing::config::default_virtual_baseline(),
     }
 }

@@ -10,7 +10,13 @@
 //! optimisation finds the map inconsistent). Every transition is reported.
 
 pub mod actions;
+mod core;
+mod corrupted_map;
+mod final_state;
 pub mod frames;
+mod idle;
+mod init;
+mod localized;
 pub mod spec;
 
 use crate::atlas::{Atlas, MapId};

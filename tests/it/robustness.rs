@@ -184,7 +184,7 @@ fn missing_sequence_is_a_clear_error() {
 }
 
 /// `homing bench overlap` on small `aliasing`: where `aliasing` 3×3 s loses the first map (drops
-/// 8.15–11.15 s), the ground truth shows no place evidence across the gap (docs/robustness-notes.md);
+/// 8.15–11.15 s), the ground truth shows no place evidence across the gap (docs/robustness.md);
 /// on the same path 0.5–2 s apart it shows plenty, and the turned control shows none.
 #[test]
 fn overlap_probe_tells_an_absent_join_from_a_present_one() {
