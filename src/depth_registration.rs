@@ -572,7 +572,7 @@ fn balance(info: &Matrix6<f64>) -> Option<(Matrix6<f64>, Matrix6<f64>)> {
     Some((d(1.0 / l), d(l)))
 }
 
-/// How the wide planes of two groups are found and aligned (see [`align_wide_planes`]).
+/// How the wide planes of two groups are found and aligned (see `align_wide_planes`).
 #[derive(Clone, Debug)]
 pub struct WidePlanes {
     /// Planes per group at most, largest first.

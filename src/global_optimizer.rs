@@ -508,7 +508,7 @@ fn depth_tolerance(z: f64) -> f64 {
 }
 
 /// Whether a rigid correction of `metres` and `radians` moves no point at any depth `z` beyond
-/// [`depth_tolerance`] (it moves a point by at most metres + radians·z): a change the depth
+/// `depth_tolerance` (it moves a point by at most metres + radians·z): a change the depth
 /// checks cannot see.
 pub fn within_depth_tolerance(metres: f64, radians: f64) -> bool {
     metres <= depth_tolerance(0.0) && radians <= depth_tolerance(1.0) - depth_tolerance(0.0)

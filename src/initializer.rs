@@ -73,7 +73,7 @@ impl Initializer {
     /// measurements do not allow it yet.
     ///
     /// RGB-D: `None` when the frame has fewer than `min_points` keypoints with depth (too
-    /// dark, too close, no depth sensor). Monocular: see [`Initializer::try_two_view`].
+    /// dark, too close, no depth sensor). Monocular: see `Initializer::try_two_view`.
     pub fn try_initialize(&mut self, m: &Measurement, map: Map) -> Option<(Map, KfId)> {
         if self.mono {
             return self.try_two_view(m, map);

@@ -168,7 +168,7 @@ impl MapMerger {
         }
     }
 
-    /// Monocular mode (see [`MapMerger::create_new_points`]).
+    /// Monocular mode (see `MapMerger::create_new_points`).
     pub fn monocular(mut self, mono: bool) -> Self {
         self.mono = mono;
         self

@@ -477,7 +477,7 @@ fn corridor_piece(
 /// corridor with doors A, B, C (B and C with identical surroundings), a dark stretch, Room 2
 /// behind C, Room 3 next to Room 2 reached only by kidnapping; session 2 in a corner of Room 2.
 ///
-/// Layout (x east, y north, metres): Room 1 [0,5]x[0,4] with door A at x = 2.5 in its north
+/// Layout (x east, y north, metres): Room 1 `[0,5]x[0,4]` with door A at x = 2.5 in its north
 /// wall; corridor [-0.5,17.5]x[4.1,6.1]; identical corridor pieces [4.5,8.5] (door B at 6.5)
 /// and [10.5,14.5] (door C at 12.5); a closet behind B, [4.5,8.5]x[6.2,8.7], whose far wall,
 /// floor and ceiling look like Room 2's [10.5,14.5]x[6.2,10.2] (Room 2 differs in its side

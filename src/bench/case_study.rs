@@ -232,7 +232,7 @@ fn run_controller(
 }
 
 /// Written into OUT/CONTROLLER/ once both of its sessions finished: what the runs depended on
-/// ([`identity`]) and the controller's result, which `--resume` reuses.
+/// (`identity`) and the controller's result, which `--resume` reuses.
 pub const DONE_MARK: &str = "bench-done.json";
 
 #[derive(Serialize, Deserialize)]

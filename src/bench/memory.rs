@@ -22,7 +22,7 @@ pub struct Options {
     /// The homing binary (default: this one).
     pub exe: Option<PathBuf>,
     /// Reuse the runs a stopped (or earlier) benchmark with the same sequence, config and
-    /// version finished in OUT (see [`DONE_MARK`]); only the others run.
+    /// version finished in OUT (see `DONE_MARK`); only the others run.
     pub resume: bool,
 }
 

@@ -1,5 +1,5 @@
-//! The states' activities, dispatched: [`StateMachine::run_activity`] runs the active
-//! state's *do* activity and [`StateMachine::enter`] its *entry* activity. Each state's own
+//! The states' activities, dispatched: `StateMachine::run_activity` runs the active
+//! state's *do* activity and `StateMachine::enter` its *entry* activity. Each state's own
 //! activities live in its file — `init`, `idle`, `core` (the Mapping and Relocalize regions),
 //! `localized`, `corrupted_map`, `final_state` — and the helpers they share live here.
 //! Components report flags and statistics; the activities set the machine's flags from them
@@ -240,9 +240,9 @@ pub(super) fn covisible_in(atlas: &Atlas, n: usize) -> impl Fn(u64) -> Vec<u64> 
 #[cfg(test)]
 mod tests {
     use super::super::final_state::select_frames;
-    use crate::map_merger::FrameObservations;
     use super::localized_inlier_floor;
     use crate::map::Map;
+    use crate::map_merger::FrameObservations;
     use crate::preprocess::Measurement;
     use nalgebra::{Isometry3, Vector2, Vector6};
     use std::collections::BTreeMap;

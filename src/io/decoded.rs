@@ -90,7 +90,7 @@ pub fn write(path: &Path, source: &(dyn FrameSource + Sync), jobs: usize) -> Res
     })
 }
 
-/// A file written by [`write`], read as a [`FrameSource`].
+/// A file written by [`write()`], read as a [`FrameSource`].
 #[derive(Debug)]
 pub struct DecodedFrames {
     path: PathBuf,

@@ -12,7 +12,7 @@
 //! time each frame's extraction took when the file was written is kept with it, and a run
 //! counts it as its own, so ms/frame and the benchmark's fps still include extraction.
 //!
-//! Layout: the magic, then a postcard payload ([`FeaturesFile`]): the version, the camera and
+//! Layout: the magic, then a postcard payload (`FeaturesFile`): the version, the camera and
 //! ORB settings the features were extracted with, the frames' time stamps and one record per
 //! frame.
 
@@ -116,7 +116,7 @@ pub fn write(
     })
 }
 
-/// A file written by [`write`], checked against the run that reads it.
+/// A file written by [`write()`], checked against the run that reads it.
 #[derive(Debug)]
 pub struct Features {
     /// Taken out as the run delivers them (each unperturbed frame once).

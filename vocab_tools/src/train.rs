@@ -2,7 +2,7 @@
 //! generic photos (never from the sequences it is evaluated on).
 //!
 //! Each image is read (JPEG or PNG, any size), its ORB features extracted by homing's own
-//! [`Preprocessor`] with the config's [orb] settings (a pinhole camera of the image's size, no
+//! [`Preprocessor`] with the config's `[orb]` settings (a pinhole camera of the image's size, no
 //! distortion), and the tree trained by [`Vocabulary::train`].
 
 use homing::config::{CameraConfig, OrbConfig};
