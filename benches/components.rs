@@ -6,19 +6,19 @@
 //! `cargo bench --bench components -- --quick` for a fast pass.
 
 use criterion::{BatchSize, Criterion, criterion_group, criterion_main};
+use homing::components::initializer::Initializer;
+use homing::components::loop_detector::hbst::{Hbst, HbstParams};
+use homing::components::preprocess::{ImageGeometry, Measurement, Preprocessor};
+use homing::components::tracker::Tracker;
 use homing::config::{Config, resolve_camera};
 use homing::geometry::Sim3;
-use homing::initializer::Initializer;
 use homing::io::tum::{FrameSource, TumSequence};
-use homing::loop_detector::hbst::{Hbst, HbstParams};
 use homing::map::Map;
 use homing::optim::pose_graph::{PgEdge, PgParams, PoseGraph, info7, node};
 use homing::optim::{
     BaCamera, BaObservation, BaParams, BaPoint, BaProblem, Intrinsics, Observation,
     octave_information, solve,
 };
-use homing::preprocess::{ImageGeometry, Measurement, Preprocessor};
-use homing::tracker::Tracker;
 use homing_datasets::{scenarios, sensor::SensorOptions, writer};
 use nalgebra::{
     Isometry3, Matrix3, Matrix6, Point3, Rotation3, Translation3, UnitQuaternion, Vector3,

@@ -644,7 +644,7 @@ fn transformed(mut map: Map, s: &Sim3) -> Map {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::preprocess::Measurement;
+    use crate::components::preprocess::Measurement;
     use nalgebra::{Point3, Rotation3, Vector2, Vector3};
 
     fn measurement(frame: usize) -> Measurement {

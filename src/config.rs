@@ -184,7 +184,7 @@ pub struct MappingConfig {
     pub final_ba_frame_interval_s: f64,
     /// Final's BA also holds geometric edges between keyframes that view the same surfaces
     /// without sharing a key point (the two sides of a merge's seam), from registering their
-    /// depth (`crate::depth_registration::seam_edges`): pairs whose wide planes (walls, floor,
+    /// depth (`crate::components::depth_registration::seam_edges`): pairs whose wide planes (walls, floor,
     /// ceiling) pair up. No effect without depth.
     pub final_depth_edges: bool,
     /// ... and also pairs without three wide planes, registered on local planes alone. Off:
@@ -740,7 +740,7 @@ impl Config {
         );
         if c.first.is_none()
             && let Some(v) = &l.vocabulary
-            && let Err(e) = crate::loop_detector::vocabulary::shared(Some(v))
+            && let Err(e) = crate::components::loop_detector::vocabulary::shared(Some(v))
         {
             c.first = Some(("loop_closing.vocabulary".into(), e.to_string()));
         }

@@ -1,32 +1,25 @@
 //! homing: visual SLAM (RGB-D and depth-suppressed monocular) whose modal behaviour is decided
 //! by one explicit hierarchical state machine ("Better Lost in Transition Than Lost in Space:
-//! SLAM State Machine"). See README.md for the architecture.
+//! SLAM State Machine"). See README.md and docs/architecture.md for the architecture.
+//!
+//! The layout follows the architecture: [`components`] are the paper's components (one module
+//! each), [`atlas`] and [`map`] hold the maps, [`control`] is the state machine (one file per
+//! state), [`optim`] the back-end solvers, [`io`] the inputs, [`outputs`] the run's files, logs
+//! and reports, [`eval`] ATE/RPE, [`bench`](mod@bench) the benchmarks, and [`system`] the run driver.
 
 pub mod config;
 pub mod error;
 pub mod io;
 
 pub use error::{Error, Result};
-pub mod aligner;
 pub mod atlas;
 pub mod bench;
+pub mod components;
 pub mod control;
-pub mod depth_registration;
 pub mod eval;
 pub mod geometry;
-pub mod global_optimizer;
-pub mod initializer;
 pub mod interrupt;
-pub mod loop_detector;
-pub mod loop_validator;
 pub mod map;
-pub mod map_merger;
-pub mod mcap_log;
 pub mod optim;
-pub mod output;
-pub mod preprocess;
-pub mod report;
+pub mod outputs;
 pub mod system;
-pub mod tracker;
-pub mod two_view;
-pub mod viz;

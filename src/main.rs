@@ -427,7 +427,7 @@ fn main() {
     let result = match cli.cmd {
         Cmd::Run(a) => cmd_run(*a, cli.quiet),
         Cmd::Report { dir, gt, out } => {
-            homing::report::write_report(&dir, gt.as_deref(), out.as_deref())
+            homing::outputs::report::write_report(&dir, gt.as_deref(), out.as_deref())
                 .map(|p| println!("wrote {}", p.display()))
                 .map_err(Into::into)
         }
@@ -615,8 +615,8 @@ fn cmd_run(a: RunArgs, quiet: bool) -> Result<()> {
         decoded_frames: a.decoded_frames,
         features: a.features,
         rerun: match (a.rerun, a.rerun_connect) {
-            (Some(f), _) => Some(homing::viz::RerunTarget::File(f)),
-            (None, Some(addr)) => Some(homing::viz::RerunTarget::Connect(addr)),
+            (Some(f), _) => Some(homing::outputs::viz::RerunTarget::File(f)),
+            (None, Some(addr)) => Some(homing::outputs::viz::RerunTarget::Connect(addr)),
             (None, None) => None,
         },
         progress: cli_progress::start(quiet),
@@ -631,7 +631,7 @@ fn cmd_run(a: RunArgs, quiet: bool) -> Result<()> {
     );
     if s.evaluation.is_some() {
         // The full evaluation is in summary.json.
-        print!("results\n{}", homing::report::results_table(&s));
+        print!("results\n{}", homing::outputs::report::results_table(&s));
     }
     println!("outputs in {}", a.out.display());
     if let Some(u) = &s.user_stop {
@@ -666,8 +666,8 @@ fn cmd_eval(mut a: EvalArgs) -> Result<()> {
     }
     let run_eval = match &a.run {
         Some(run) => {
-            let closures = homing::output::read_closures(&run.join("closures.csv"))?;
-            let maps = homing::output::read_state_maps(&run.join("states.csv"))?;
+            let closures = homing::outputs::read_closures(&run.join("closures.csv"))?;
+            let maps = homing::outputs::read_state_maps(&run.join("states.csv"))?;
             let (per_map, largest) = eval::run::per_map_ate(&gt, &est, &maps, a.align, a.max_dt);
             let mono = (a.align == Alignment::Sim3)
                 .then(|| eval::run::MonoScales::from_maps(&per_map, largest));

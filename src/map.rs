@@ -1,7 +1,7 @@
 //! The local map: keyframes, map points, covisibility. Ordered containers everywhere (BTreeMap)
 //! so that iteration order, and with it every output, is deterministic.
 
-use crate::preprocess::{
+use crate::components::preprocess::{
     Descriptor, FeatureGrid, Keypoint, Measurement, hamming, nearest_descriptor,
 };
 use nalgebra::{Isometry3, Point3, Vector3, Vector6};
@@ -58,7 +58,7 @@ pub struct Keyframe {
     /// Frame poses and closure measurements kept relative to the keyframe are stored in its
     /// creation units and rescaled by this on use.
     pub units: f64,
-    /// The depth grid of the keyframe's frame ([`crate::preprocess::Measurement::surface`],
+    /// The depth grid of the keyframe's frame ([`crate::components::preprocess::Measurement::surface`],
     /// millimetres in its creation units; empty when monocular): what depth registration
     /// aligns when no key point is shared.
     pub surface: Vec<u16>,

@@ -4,6 +4,7 @@
 //!
 
 use crate::atlas::{Atlas, AtlasCamera};
+use crate::components::preprocess::Preprocessor;
 use crate::config::{CameraSource, Config, ControllerKind, resolve_camera};
 use crate::control::StateMachine;
 use crate::error::{Error, Result};
@@ -13,10 +14,9 @@ use crate::io::mcap::{McapSequence, McapTopics};
 use crate::io::perturb::{PerturbationPlan, PerturbationSpec, PerturbedSequence};
 use crate::io::tum::{FrameSource, StampedPose, TumSequence};
 use crate::map::KfId;
-use crate::output::{
+use crate::outputs::{
     ClosureRow, RunOutputs, StateRow, Summary, Timing, Transition, describe_camera,
 };
-use crate::preprocess::Preprocessor;
 use nalgebra::Isometry3;
 use std::path::PathBuf;
 use std::time::Instant;
@@ -50,7 +50,7 @@ pub struct RunOptions {
     /// Put per-stage milliseconds into run.mcap (measured: the file then differs run to run).
     pub mcap_timing: bool,
     /// Also log the run to rerun (a file or a live viewer); needs the `rerun` feature.
-    pub rerun: Option<crate::viz::RerunTarget>,
+    pub rerun: Option<crate::outputs::viz::RerunTarget>,
     /// Read the frames from this file of decoded frames (`io::decoded`, written by
     /// `homing bench robustness` once per sequence) instead of decoding the sequence's images.
     /// The sequence still gives the frame list, the camera and the ground truth.
@@ -136,7 +136,7 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
     let intr = camera.intrinsics();
     let mut pre = Preprocessor::new(&camera, &config.orb)?;
     let mut viz = match &opts.rerun {
-        Some(target) => Some(crate::viz::Visualizer::open(
+        Some(target) => Some(crate::outputs::viz::Visualizer::open(
             target,
             &intr,
             (camera.width, camera.height),
@@ -282,14 +282,14 @@ struct Recorded {
     /// up in the merged frame. Keyframe ids are unique across the atlas.
     relative: Vec<(usize, f64, KfId, Isometry3<f64>)>,
     poses_discarded: usize,
-    frame_stats: Vec<crate::mcap_log::FrameStats>,
+    frame_stats: Vec<crate::outputs::mcap_log::FrameStats>,
     /// The input error that ended the loop (`--strict-input`, or a frame that could not be
     /// processed).
     failure: Option<Error>,
     delivered: usize,
     /// The frame after which a user stop (SIGINT/SIGTERM) ended the loop.
     user_stop: Option<(usize, f64)>,
-    unreadable: Vec<crate::output::UnreadableFrame>,
+    unreadable: Vec<crate::outputs::UnreadableFrame>,
     extraction_reused_ms: f64,
 }
 
@@ -337,7 +337,7 @@ fn frame_loop(
     input: &Input<'_>,
     pre: &mut Preprocessor,
     mut features: Option<&mut crate::io::features::Features>,
-    mut viz: Option<&mut crate::viz::Visualizer>,
+    mut viz: Option<&mut crate::outputs::viz::Visualizer>,
     machine: &mut StateMachine,
     timing: &mut Timing,
 ) -> Recorded {
@@ -373,7 +373,7 @@ fn frame_loop(
                     tracing::warn!(
                         "frame {index}: {e}: taken as a failed measurement (--strict-input stops instead)"
                     );
-                    rec.unreadable.push(crate::output::UnreadableFrame {
+                    rec.unreadable.push(crate::outputs::UnreadableFrame {
                         frame: index,
                         t,
                         error: e.to_string(),
@@ -424,7 +424,7 @@ fn frame_loop(
                 timing.record("extract_track", pre_ms + track_ms);
             }
             if input.opts.mcap_log {
-                rec.frame_stats.push(crate::mcap_log::FrameStats {
+                rec.frame_stats.push(crate::outputs::mcap_log::FrameStats {
                     frame: frame.index,
                     t: frame.t,
                     tracked_inliers: machine.track_inliers,
@@ -518,7 +518,7 @@ struct Posed {
     /// Each posed frame's stamp and map.
     pose_maps: Vec<(f64, u32)>,
     /// For run.mcap (`--mcap-log`).
-    posed: Vec<crate::mcap_log::PosedFrame>,
+    posed: Vec<crate::outputs::mcap_log::PosedFrame>,
 }
 
 /// Resolves every frame's pose through its keyframe in the final atlas (Final's refinement may
@@ -533,7 +533,7 @@ fn resolve_poses(machine: &StateMachine, rec: &mut Recorded, mcap_log: bool) -> 
     let mut frame_map: std::collections::BTreeMap<usize, u32> = std::collections::BTreeMap::new();
     let mut trajectory: Vec<StampedPose> = Vec::with_capacity(rec.relative.len());
     let mut pose_maps: Vec<(f64, u32)> = Vec::with_capacity(rec.relative.len());
-    let mut posed: Vec<crate::mcap_log::PosedFrame> = Vec::new();
+    let mut posed: Vec<crate::outputs::mcap_log::PosedFrame> = Vec::new();
     for (frame, t, kf, rel) in &rec.relative {
         let Some((map, k)) = kf_map.get(kf) else {
             rec.poses_discarded += 1;
@@ -549,7 +549,7 @@ fn resolve_poses(machine: &StateMachine, rec: &mut Recorded, mcap_log: bool) -> 
         frame_map.insert(*frame, *map);
         pose_maps.push((*t, *map));
         if mcap_log {
-            posed.push(crate::mcap_log::PosedFrame {
+            posed.push(crate::outputs::mcap_log::PosedFrame {
                 frame: *frame,
                 t: *t,
                 map: *map,
@@ -663,15 +663,18 @@ fn summarize(
             .map(|m| (m.id, m.keyframes.len()))
             .collect(),
         stop_reason: machine.stop_reason.clone(),
-        user_stop: fin.rec.user_stop.map(|(frame, t)| crate::output::UserStop {
-            frame,
-            t,
-            frames_not_processed: n - fin.rec.delivered,
-            refinement: machine
-                .refinement_cut
-                .clone()
-                .unwrap_or_else(|| "complete".into()),
-        }),
+        user_stop: fin
+            .rec
+            .user_stop
+            .map(|(frame, t)| crate::outputs::UserStop {
+                frame,
+                t,
+                frames_not_processed: n - fin.rec.delivered,
+                refinement: machine
+                    .refinement_cut
+                    .clone()
+                    .unwrap_or_else(|| "complete".into()),
+            }),
         closures_accepted: fin
             .closures
             .iter()
@@ -713,7 +716,7 @@ fn write_outputs(
     opts: &RunOptions,
     fin: &Finished,
     summary: &Summary,
-    viz: Option<crate::viz::Visualizer>,
+    viz: Option<crate::outputs::viz::Visualizer>,
 ) -> Result<()> {
     out.write_trajectory(&fin.posed.trajectory)?;
     out.write_keyframes(&fin.keyframes)?;
@@ -725,7 +728,7 @@ fn write_outputs(
         v.finish()?;
     }
     if opts.mcap_log {
-        crate::mcap_log::write(
+        crate::outputs::mcap_log::write(
             &out.path("run.mcap"),
             &fin.rec.states,
             &fin.rec.frame_stats,

@@ -10,7 +10,7 @@
 use crate::config::ControllerKind;
 use crate::error::{Error, Result};
 use crate::eval::timeline::{self, StepResult};
-use crate::output::Summary;
+use crate::outputs::Summary;
 use crate::system::{RunOptions, run};
 use serde::{Deserialize, Serialize};
 use std::fmt::Write as _;
@@ -193,8 +193,8 @@ fn run_controller(
             }
         }
     }
-    let rows1 = crate::output::read_states(&dir.join("session1/states.csv"))?;
-    let rows2 = crate::output::read_states(&dir.join("session2/states.csv"))?;
+    let rows1 = crate::outputs::read_states(&dir.join("session1/states.csv"))?;
+    let rows2 = crate::outputs::read_states(&dir.join("session2/states.csv"))?;
     let known_view = if ours {
         first_known_view(s1, s2, &dir.join("session1/keyframes.txt"))?
     } else {
@@ -340,7 +340,7 @@ fn first_known_view(s1: &Path, s2: &Path, keyframes: &Path) -> Result<Option<usi
     let gt1 = read_trajectory(&s1.join("groundtruth.txt"))?;
     let gt2 = read_trajectory(&s2.join("groundtruth.txt"))?;
     let frames2 = read_list(&s2.join("rgb.txt"))?;
-    let kfs = crate::report::read_keyframes(keyframes)?;
+    let kfs = crate::outputs::report::read_keyframes(keyframes)?;
     let t1: Vec<f64> = gt1.iter().map(|p| p.t).collect();
     let t_kf: Vec<f64> = kfs.iter().map(|(p, _)| p.t).collect();
     let views: Vec<_> = associate_nearest(&t_kf, &t1, 0.02)

@@ -12,12 +12,12 @@
 //! turned by [`CONTROL_TURN_DEG`] gives the chance level of those descriptor distances.
 //! Frames are processed exactly as a run's front end does (same camera, same ORB settings).
 
-use crate::aligner::backproject;
+use crate::components::aligner::backproject;
+use crate::components::loop_validator::SEARCH_MAX_DISTANCE;
+use crate::components::preprocess::{ImageGeometry, Measurement, Preprocessor, hamming};
 use crate::error::{Error, Result};
 use crate::eval::run::gt_at;
 use crate::io::tum::FrameSource;
-use crate::loop_validator::SEARCH_MAX_DISTANCE;
-use crate::preprocess::{ImageGeometry, Measurement, Preprocessor, hamming};
 use nalgebra::{Isometry3, Point3, UnitQuaternion, Vector3};
 use std::fmt::Write as _;
 use std::path::Path;

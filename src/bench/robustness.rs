@@ -884,7 +884,7 @@ fn read_run(dir: &Path, row: &mut Row) -> Result<()> {
                 .collect()
         })
         .unwrap_or_default();
-    let states = crate::output::read_states(&dir.join("states.csv"))?;
+    let states = crate::outputs::read_states(&dir.join("states.csv"))?;
     // Delivered frames in order, and whether each has a pose in the final atlas.
     let mut delivered: Vec<(usize, bool)> = Vec::new();
     for r in &states {
@@ -893,7 +893,7 @@ fn read_run(dir: &Path, row: &mut Row) -> Result<()> {
         }
     }
     row.recovery_frames = recovery(&delivered, &dropped, &faults);
-    let closures = crate::output::read_closures(&dir.join("closures.csv"))?;
+    let closures = crate::outputs::read_closures(&dir.join("closures.csv"))?;
     let final_map: std::collections::BTreeMap<usize, u32> = states
         .iter()
         .filter_map(|r| Some((r.frame, r.map?)))

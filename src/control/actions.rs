@@ -8,11 +8,11 @@
 use super::StateMachine;
 use super::spec::{Activity, State};
 use crate::atlas::{Atlas, MapId};
-use crate::global_optimizer::{self};
+use crate::components::global_optimizer::{self};
+use crate::components::preprocess::Measurement;
+use crate::components::tracker::TrackResult;
 use crate::map::KfId;
-use crate::output::Timing;
-use crate::preprocess::Measurement;
-use crate::tracker::TrackResult;
+use crate::outputs::Timing;
 use nalgebra::Isometry3;
 use std::collections::{BTreeMap, BTreeSet};
 
@@ -241,9 +241,9 @@ pub(super) fn covisible_in(atlas: &Atlas, n: usize) -> impl Fn(u64) -> Vec<u64> 
 mod tests {
     use super::super::final_state::select_frames;
     use super::localized_inlier_floor;
+    use crate::components::map_merger::FrameObservations;
+    use crate::components::preprocess::Measurement;
     use crate::map::Map;
-    use crate::map_merger::FrameObservations;
-    use crate::preprocess::Measurement;
     use nalgebra::{Isometry3, Vector2, Vector6};
     use std::collections::BTreeMap;
 

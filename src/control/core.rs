@@ -3,14 +3,14 @@
 use super::StateMachine;
 use super::spec::{Acceptance, Activity, LoopScope, State};
 use crate::atlas::{MapId, PoolId};
-use crate::global_optimizer::{self};
-use crate::loop_detector::Neighbourhood;
-use crate::loop_validator::{self, Accepted, Agreement, Query, Verdict, relative};
+use crate::components::global_optimizer::{self};
+use crate::components::loop_detector::Neighbourhood;
+use crate::components::loop_validator::{self, Accepted, Agreement, Query, Verdict, relative};
+use crate::components::map_merger::FrameObservations;
+use crate::components::preprocess::Measurement;
+use crate::components::tracker::TrackResult;
 use crate::map::KfId;
-use crate::map_merger::FrameObservations;
-use crate::output::{ClosureRow, Timing};
-use crate::preprocess::Measurement;
-use crate::tracker::TrackResult;
+use crate::outputs::{ClosureRow, Timing};
 use nalgebra::Isometry3;
 use std::collections::{BTreeMap, BTreeSet};
 
@@ -360,7 +360,7 @@ impl StateMachine {
         &self,
         m: &Measurement,
         exclude: impl Fn(KfId) -> bool,
-    ) -> crate::loop_detector::Detection {
+    ) -> crate::components::loop_detector::Detection {
         let covisible = covisible_in(&self.atlas, self.cfg.loop_closing.bow_group_size as usize);
         let nb = Neighbourhood {
             covisible: &covisible,

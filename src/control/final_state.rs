@@ -2,9 +2,9 @@
 
 use super::StateMachine;
 use crate::atlas::MapId;
+use crate::components::map_merger::FrameObservations;
 use crate::map::KfId;
-use crate::map_merger::FrameObservations;
-use crate::output::Timing;
+use crate::outputs::Timing;
 use std::collections::BTreeMap;
 
 impl StateMachine {
@@ -44,10 +44,10 @@ impl StateMachine {
             );
             let edges = if self.cfg.mapping.final_depth_edges && !self.mono {
                 timing.time("final_depth_edges", || {
-                    crate::depth_registration::seam_edges(
+                    crate::components::depth_registration::seam_edges(
                         map,
                         &self.surface_rays,
-                        &crate::depth_registration::EdgeSearch {
+                        &crate::components::depth_registration::EdgeSearch {
                             local_planes: self.cfg.mapping.final_depth_edges_local_planes,
                             ..Default::default()
                         },
@@ -97,12 +97,13 @@ impl StateMachine {
                 r.outliers.len()
             );
             // Past the cutoff, the frames not yet re-placed keep their tracked poses.
-            let placed: crate::map_merger::FramePoses = timing.time("final_frames", || {
-                rest.iter()
-                    .take_while(|_| !cutoff.is_some_and(|c| c.reached()))
-                    .filter_map(|f| Some((f.frame, self.merger.place_frame(map, f)?.0)))
-                    .collect()
-            });
+            let placed: crate::components::map_merger::FramePoses =
+                timing.time("final_frames", || {
+                    rest.iter()
+                        .take_while(|_| !cutoff.is_some_and(|c| c.reached()))
+                        .filter_map(|f| Some((f.frame, self.merger.place_frame(map, f)?.0)))
+                        .collect()
+                });
             for (f, pose_cw) in poses.into_iter().chain(placed) {
                 let kf = self.frame_obs.all()[&f].kf;
                 if let Some(k) = map.keyframes.get(&kf) {

@@ -8,8 +8,8 @@
 //! closest is forgotten (its pose still follows its keyframe, as every frame's does), so the
 //! frames kept stay spread over the whole time the keyframe was seen.
 
+use crate::components::map_merger::FrameObservations;
 use crate::map::KfId;
-use crate::map_merger::FrameObservations;
 use std::collections::{BTreeMap, BTreeSet};
 
 #[derive(Debug, Clone, Default)]

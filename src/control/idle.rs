@@ -1,11 +1,11 @@
 //! Idle: tracking lost; a new map is started (or, for ORB-SLAM2's controller, only relocalization runs).
 
 use super::StateMachine;
-use crate::loop_validator::{self, Query, Verdict};
+use crate::components::loop_validator::{self, Query, Verdict};
+use crate::components::preprocess::Measurement;
+use crate::components::tracker::TrackMethod;
 use crate::map::KfId;
-use crate::output::Timing;
-use crate::preprocess::Measurement;
-use crate::tracker::TrackMethod;
+use crate::outputs::Timing;
 use nalgebra::Isometry3;
 
 use super::actions::*;

@@ -2,9 +2,9 @@
 
 use super::StateMachine;
 use crate::atlas::MapId;
+use crate::components::preprocess::Measurement;
 use crate::map::KfId;
-use crate::output::Timing;
-use crate::preprocess::Measurement;
+use crate::outputs::Timing;
 use nalgebra::Isometry3;
 
 use super::actions::*;

@@ -2,12 +2,12 @@
 
 use super::StateMachine;
 use crate::atlas::{ClosureEdge, MapId, PoolKind};
+use crate::components::global_optimizer::{self, GlobalReport};
+use crate::components::loop_validator::{Accepted, relative_information};
+use crate::components::preprocess::Measurement;
 use crate::geometry::Sim3;
-use crate::global_optimizer::{self, GlobalReport};
-use crate::loop_validator::{Accepted, relative_information};
 use crate::map::KfId;
-use crate::output::Timing;
-use crate::preprocess::Measurement;
+use crate::outputs::Timing;
 use std::collections::BTreeSet;
 
 use super::actions::*;

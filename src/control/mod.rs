@@ -20,16 +20,16 @@ mod localized;
 pub mod spec;
 
 use crate::atlas::{Atlas, MapId};
+use crate::components::initializer::Initializer;
+use crate::components::loop_detector::LoopDetector;
+use crate::components::loop_validator::{Accepted, Pool};
+use crate::components::map_merger::MapMerger;
+use crate::components::preprocess::{ImageGeometry, Measurement};
+use crate::components::tracker::Tracker;
 use crate::config::{CameraConfig, Config};
-use crate::initializer::Initializer;
-use crate::loop_detector::LoopDetector;
-use crate::loop_validator::{Accepted, Pool};
 use crate::map::KfId;
-use crate::map_merger::MapMerger;
 use crate::optim::Intrinsics;
-use crate::output::{ClosureRow, Flags, Timing, Transition};
-use crate::preprocess::{ImageGeometry, Measurement};
-use crate::tracker::Tracker;
+use crate::outputs::{ClosureRow, Flags, Timing, Transition};
 use nalgebra::Isometry3;
 pub use spec::{Activity, Guard, MachineSpec, State};
 use std::collections::BTreeMap;
@@ -155,10 +155,10 @@ pub struct StateMachine {
     lost_place: Option<LostPlace>,
     /// A frame Idle re-tracked in the current map, for the entered state's Mapping region
     /// (see `map_retracked`); and the frame's pose when that made it a keyframe.
-    retracked: Option<crate::tracker::TrackResult>,
+    retracked: Option<crate::components::tracker::TrackResult>,
     entry_pose: Option<actions::Pose>,
     /// The observations of the frame tracked last in this step, kept if its pose stands.
-    pending_obs: Option<crate::map_merger::FrameObservations>,
+    pending_obs: Option<crate::components::map_merger::FrameObservations>,
     /// A keyframe was made from this step's frame (it is a camera of the Final BA already).
     keyframe_made: bool,
     /// The observations of every frame whose pose stands, for Final's batch refinement.
@@ -179,7 +179,7 @@ pub struct StateMachine {
     /// Which of the latest frame's keypoints the tracker matched to a map point (empty when it
     /// did not run); for the visualiser.
     pub track_matched: Vec<bool>,
-    /// Rays of the depth-grid samples ([`crate::preprocess::Preprocessor::surface_rays`]);
+    /// Rays of the depth-grid samples ([`crate::components::preprocess::Preprocessor::surface_rays`]);
     /// empty: no depth registration.
     surface_rays: Vec<nalgebra::Vector2<f64>>,
 }
@@ -246,7 +246,7 @@ impl StateMachine {
     }
 
     /// The rays of the frames' depth-grid samples, from the preprocessor: with them Final's
-    /// batch refinement can register keyframes by their depth (`crate::depth_registration`).
+    /// batch refinement can register keyframes by their depth (`crate::components::depth_registration`).
     pub fn set_surface_rays(&mut self, rays: &[nalgebra::Vector2<f64>]) {
         self.surface_rays = rays.to_vec();
     }

@@ -11,7 +11,7 @@
 
 use super::{Alignment, associate_and_align, ate};
 use crate::io::tum::StampedPose;
-use crate::output::ClosureRow;
+use crate::outputs::ClosureRow;
 use nalgebra::Isometry3;
 use serde::Serialize;
 use std::collections::BTreeMap;

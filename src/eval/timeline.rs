@@ -12,7 +12,7 @@
 //! stretch of unusable images keeps the machine in Idle throughout, which callers that care
 //! check on the frames themselves).
 
-use crate::output::StateCsvRow;
+use crate::outputs::StateCsvRow;
 use serde::{Deserialize, Serialize};
 
 /// A step as `scenario.json` describes it.

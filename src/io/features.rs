@@ -17,9 +17,9 @@
 //! frame.
 
 use super::tum::FrameSource;
+use crate::components::preprocess::{FeatureGrid, Measurement, Preprocessor};
 use crate::config::{CameraConfig, OrbConfig};
 use crate::error::{Error, Result};
-use crate::preprocess::{FeatureGrid, Measurement, Preprocessor};
 use serde::{Deserialize, Serialize};
 use std::io::Write;
 use std::path::Path;

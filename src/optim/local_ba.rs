@@ -65,7 +65,7 @@ pub struct BaObservation {
 /// cameras): `a_from_b` ≈ `T_a · T_b⁻¹` (maps `b`'s camera frame into `a`'s), with
 /// information `info` over a left perturbation (ω, υ) of it. What a depth registration of
 /// surfaces two keyframes share without a common key point measures (see
-/// `crate::depth_registration`); directions the surfaces leave free carry no information.
+/// `crate::components::depth_registration`); directions the surfaces leave free carry no information.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct BaPoseEdge {
     pub a: usize,

@@ -6,7 +6,7 @@ use homing::system::{RunOptions, run};
 
 use crate::common;
 
-fn ate(s: &homing::output::Summary) -> f64 {
+fn ate(s: &homing::outputs::Summary) -> f64 {
     s.evaluation.as_ref().unwrap()["ate"]["stats"]["rmse"]
         .as_f64()
         .unwrap()
@@ -311,7 +311,7 @@ fn with_false_frames(
     scenario: &str,
     kind: homing::io::perturb::FaultKind,
     p: f64,
-) -> homing::output::Summary {
+) -> homing::outputs::Summary {
     with_false_frames_and_config(scenario, kind, p, None)
 }
 
@@ -321,7 +321,7 @@ fn with_false_frames_and_config(
     kind: homing::io::perturb::FaultKind,
     p: f64,
     config: Option<&str>,
-) -> homing::output::Summary {
+) -> homing::outputs::Summary {
     use homing::io::perturb::{FaultRate, PerturbationSpec};
     let spec = PerturbationSpec {
         fault_rates: vec![FaultRate { kind, p }],
@@ -333,7 +333,7 @@ fn with_false_frames_and_config(
 
 /// Asserts no wrong closure was accepted and the largest map holds at least `min_largest` of
 /// the frames.
-fn assert_no_wrong_closure(s: &homing::output::Summary, min_largest: f64) {
+fn assert_no_wrong_closure(s: &homing::outputs::Summary, min_largest: f64) {
     let ev = s.evaluation.as_ref().unwrap();
     let wrong = ev["closures"]["accepted_wrong"].as_u64().unwrap();
     assert_eq!(wrong, 0, "wrong closures");
@@ -451,7 +451,7 @@ fn depth_edges_join_the_legs_after_a_two_second_drop() {
 fn loop_with_and_without_depth_edges(
     drops: &[&str],
     with: &str,
-) -> (homing::output::Summary, homing::output::Summary) {
+) -> (homing::outputs::Summary, homing::outputs::Summary) {
     let tmp = tempfile::tempdir().unwrap();
     let seq = common::small("loop");
     let run_with = |name: &str, mapping: &str| {

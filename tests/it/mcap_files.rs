@@ -7,7 +7,7 @@ use crate::common;
 use homing::io::mcap::{
     CAMERA_INFO_TOPIC, DEPTH_TOPIC, McapTopics, RGB_TOPIC, pose_from_json, tum_to_mcap,
 };
-use homing::mcap_log::{POSE_TOPIC, STATE_TOPIC, STATS_TOPIC, TRANSITION_TOPIC};
+use homing::outputs::mcap_log::{POSE_TOPIC, STATE_TOPIC, STATS_TOPIC, TRANSITION_TOPIC};
 use homing::system::{RunOptions, run};
 use homing_datasets::scenarios;
 use homing_datasets::sensor::SensorOptions;
@@ -23,7 +23,7 @@ fn topics(camera_info: bool) -> McapTopics {
     }
 }
 
-fn run_bag(bag: &Path, out: &Path, t: McapTopics) -> homing::Result<homing::output::Summary> {
+fn run_bag(bag: &Path, out: &Path, t: McapTopics) -> homing::Result<homing::outputs::Summary> {
     run(&RunOptions {
         mcap: Some((bag.to_path_buf(), t)),
         out: out.to_path_buf(),
@@ -121,7 +121,7 @@ fn bag_run_matches_folder_run_and_run_mcap_reads_back() {
         .filter(|(_, v)| v["tracked_inliers"].as_u64().is_some_and(|n| n > 20))
         .count();
     assert!(tracked > 50, "{tracked} frames with tracked inliers");
-    let states = homing::output::read_states(&from_folder.join("states.csv")).unwrap();
+    let states = homing::outputs::read_states(&from_folder.join("states.csv")).unwrap();
     let expected: Vec<(usize, String, String)> = states
         .iter()
         .filter_map(|r| Some((r.frame, r.from.clone()?, r.state.clone())))
@@ -148,7 +148,7 @@ fn tiny_bag(tmp: &Path) -> PathBuf {
     bag
 }
 
-fn err_of(r: homing::Result<homing::output::Summary>) -> String {
+fn err_of(r: homing::Result<homing::outputs::Summary>) -> String {
     r.expect_err("an error").to_string()
 }
 

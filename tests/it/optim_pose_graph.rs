@@ -1,8 +1,10 @@
 //! Pose-graph optimisation and the global optimizer's consistency check on synthetic graphs.
 
+use homing::components::global_optimizer::{
+    closure_information, odometry_information, optimize_graph,
+};
 use homing::config::LoopClosingConfig;
 use homing::geometry::Sim3;
-use homing::global_optimizer::{closure_information, odometry_information, optimize_graph};
 use homing::optim::pose_graph::{PgEdge, PoseGraph, exp_sim3, info7, node};
 use nalgebra::{Isometry3, Matrix6, Translation3, UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng};

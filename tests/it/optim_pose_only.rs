@@ -181,7 +181,7 @@ fn degenerate_points_do_not_panic() {
 /// global shutter is pulled centimetres away along the translation/rotation ambiguity.
 #[test]
 fn rolling_shutter_model_removes_the_skew_bias() {
-    use homing::preprocess::ImageGeometry;
+    use homing::components::preprocess::ImageGeometry;
     let mut rng = ChaCha8Rng::seed_from_u64(21);
     let geo = ImageGeometry::new(INTR, 640, 480, 1.2, 8).with_readout(0.025);
     let truth = Isometry3::new(Vector3::new(0.1, 0.2, 0.3), Vector3::new(0.1, -0.05, 0.02));

@@ -1,8 +1,8 @@
 //! ORB extraction: count, spread over the image, undistortion, depth lookup.
 
+use homing::components::preprocess::{Preprocessor, hamming};
 use homing::config::{CameraConfig, OrbConfig};
 use homing::io::tum::{DepthImage, Frame};
-use homing::preprocess::{Preprocessor, hamming};
 use rand::{Rng, SeedableRng};
 
 /// A 640x480 image of random rectangles: corners everywhere, one very busy corner region.

@@ -4,7 +4,7 @@
 use crate::common;
 use base64::Engine as _;
 use homing::io::perturb::PerturbationSpec;
-use homing::report::{results_table, write_report};
+use homing::outputs::report::{results_table, write_report};
 use homing::system::{RunOptions, run};
 use homing_datasets::scenarios;
 use homing_datasets::sensor::SensorOptions;

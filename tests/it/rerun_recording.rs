@@ -4,8 +4,8 @@
 
 use crate::common;
 use homing::io::perturb::PerturbationSpec;
+use homing::outputs::viz::RerunTarget;
 use homing::system::{RunOptions, run};
-use homing::viz::RerunTarget;
 use homing_datasets::scenarios;
 use homing_datasets::sensor::SensorOptions;
 use homing_datasets::writer::GenOptions;

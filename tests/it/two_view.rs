@@ -1,4 +1,4 @@
-//! Two-view geometry (src/two_view.rs) on synthetic scenes: ORB-SLAM's H/F model selection,
+//! Two-view geometry (src/components/two_view.rs) on synthetic scenes: ORB-SLAM's H/F model selection,
 //! motion recovery, low-parallax refusal, triangulation accuracy, Sim3 RANSAC, determinism.
 //!
 //! "1 px noise" in the two-view scenes is Gaussian noise of 1 px std per axis on the image-2
@@ -6,13 +6,13 @@
 //! default σ = 1; see `planar_rh_depends_on_noise_relative_to_sigma` for noise in both images.
 //! Outliers (20 %) are matches whose image-2 keypoint is a uniformly random pixel.
 
-use homing::geometry::Sim3;
-use homing::optim::Intrinsics;
-use homing::two_view::{
+use homing::components::two_view::{
     ModelKind, RejectReason, Sim3RansacParams, TwoViewParams, decompose_essential,
     decompose_homography, initialize_two_view, k_matrix, parallax_deg, projection_matrix,
     reprojection_error_sq, sim3_ransac, triangulate,
 };
+use homing::geometry::Sim3;
+use homing::optim::Intrinsics;
 use nalgebra::{Matrix3, Rotation3, Vector2, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;

@@ -16,9 +16,11 @@
 //! Everything is drawn from one seeded ChaCha8 generator.
 
 use crate::descfile::DescriptorFile;
-use homing::loop_detector::{DescriptorIndex, Hbst, LoopDetectorParams, TreeStats, score};
-use homing::output::{Timing, TimingStats};
-use homing::preprocess::Descriptor;
+use homing::components::loop_detector::{
+    DescriptorIndex, Hbst, LoopDetectorParams, TreeStats, score,
+};
+use homing::components::preprocess::Descriptor;
+use homing::outputs::{Timing, TimingStats};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;

@@ -16,8 +16,8 @@
 //! ([`homing::io::atomic_write`]); reading checks every length against what is left, so a
 //! truncated or corrupt file is an error naming the file, never a panic or a huge allocation.
 
+use homing::components::preprocess::Descriptor;
 use homing::io::atomic_write;
-use homing::preprocess::Descriptor;
 use homing::{Error, Result};
 use std::path::Path;
 

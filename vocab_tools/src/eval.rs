@@ -14,13 +14,15 @@
 //! TP / positives.
 
 use crate::descfile::DescriptorFile;
-use homing::io::tum::{associate_nearest, read_trajectory};
-use homing::loop_detector::vocabulary::{BowDatabase, BowVector, Vocabulary, score as bow_score};
-use homing::loop_detector::{
+use homing::components::loop_detector::vocabulary::{
+    BowDatabase, BowVector, Vocabulary, score as bow_score,
+};
+use homing::components::loop_detector::{
     BruteForce, DescriptorIndex, Detection, Hbst, LoopDetector, LoopDetectorParams,
 };
-use homing::output::Timing;
-use homing::preprocess::Descriptor;
+use homing::components::preprocess::Descriptor;
+use homing::io::tum::{associate_nearest, read_trajectory};
+use homing::outputs::Timing;
 use homing::{Error, Result};
 use nalgebra::Isometry3;
 use serde::Serialize;

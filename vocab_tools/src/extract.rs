@@ -3,10 +3,10 @@
 //! [`Preprocessor`]).
 
 use crate::descfile::{DescriptorFile, FrameDescriptors};
+use homing::components::preprocess::Preprocessor;
 use homing::config::{Config, resolve_camera};
 use homing::io::tum::{FrameSource, TumSequence};
-use homing::output::{Timing, describe_camera};
-use homing::preprocess::Preprocessor;
+use homing::outputs::{Timing, describe_camera};
 use homing::{Error, Result};
 use std::path::Path;
 

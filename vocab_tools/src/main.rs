@@ -3,10 +3,10 @@
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand};
+use homing::components::loop_detector::LoopDetectorParams;
+use homing::components::loop_detector::vocabulary::Vocabulary;
 use homing::config::Config;
 use homing::io::atomic_write;
-use homing::loop_detector::LoopDetectorParams;
-use homing::loop_detector::vocabulary::Vocabulary;
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use vocab_tools::bench::{self, BenchOptions, Source, WorldParams};

@@ -5,10 +5,10 @@
 //! [`Preprocessor`] with the config's `[orb]` settings (a pinhole camera of the image's size, no
 //! distortion), and the tree trained by [`Vocabulary::train`].
 
+use homing::components::loop_detector::vocabulary::Vocabulary;
+use homing::components::preprocess::{Descriptor, Preprocessor};
 use homing::config::{CameraConfig, OrbConfig};
 use homing::io::tum::Frame;
-use homing::loop_detector::vocabulary::Vocabulary;
-use homing::preprocess::{Descriptor, Preprocessor};
 use homing::{Error, Result};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};

@@ -1,7 +1,7 @@
 //! `vocab-tools build`: an HBST of all descriptors of a file, and its shape.
 
 use crate::descfile::DescriptorFile;
-use homing::loop_detector::{DescriptorIndex, Hbst, HbstParams, TreeStats};
+use homing::components::loop_detector::{DescriptorIndex, Hbst, HbstParams, TreeStats};
 use serde::Serialize;
 use std::fmt::Write as _;
 use std::time::Instant;

@@ -1,9 +1,9 @@
 //! Fast tests without external data: the descriptor file, tree statistics, the evaluation on a
 //! synthetic out-and-back trajectory whose true matches are known, and the bench generator.
 
+use homing::components::loop_detector::{HbstParams, LoopDetectorParams};
+use homing::components::preprocess::{Descriptor, hamming};
 use homing::io::tum::{StampedPose, write_trajectory};
-use homing::loop_detector::{HbstParams, LoopDetectorParams};
-use homing::preprocess::{Descriptor, hamming};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;

@@ -177,7 +177,7 @@ pub struct SmallRun {
     pub tmp: tempfile::TempDir,
     pub seq: PathBuf,
     pub out: PathBuf,
-    pub summary: homing::output::Summary,
+    pub summary: homing::outputs::Summary,
 }
 
 /// Scenario `name` small ([`small`]) run under `perturb`, with evaluation.

@@ -22,11 +22,11 @@
 //! Timelines: `frame` (index in the unperturbed sequence) and `time` (seconds since the first
 //! frame).
 
+use crate::components::preprocess::Measurement;
 use crate::control::{State, StateMachine, StepOutput};
 use crate::error::{Error, Result};
 use crate::io::tum::Frame;
 use crate::optim::Intrinsics;
-use crate::preprocess::Measurement;
 use std::path::PathBuf;
 
 /// Where the recording goes.

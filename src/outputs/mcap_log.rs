@@ -16,7 +16,7 @@
 use crate::error::{Error, Result};
 use crate::io::atomic_write;
 use crate::io::mcap::{POSE_JSON_SCHEMA, pose_json, seconds_to_ns, write_options};
-use crate::output::{Flags, StateRow};
+use crate::outputs::{Flags, StateRow};
 use nalgebra::Isometry3;
 use serde_json::json;
 use std::collections::BTreeMap;

@@ -16,7 +16,7 @@
 //! in a parallel vector, the (image slot, descriptor index) they came from. Everything is
 //! ordered and single-threaded, so the same inserts give the same tree and the same matches.
 
-use crate::preprocess::Descriptor;
+use crate::components::preprocess::Descriptor;
 use std::collections::BTreeMap;
 
 /// HBST parameters (see [`crate::config::LoopClosingConfig`] for the configured values).

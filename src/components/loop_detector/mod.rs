@@ -27,8 +27,8 @@ pub use hbst::{
     TreeStats,
 };
 
+use crate::components::preprocess::Descriptor;
 use crate::config::{LoopClosingConfig, PlaceRecognition};
-use crate::preprocess::Descriptor;
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
 use vocabulary::{BowDatabase, BowVector, Vocabulary};

@@ -8,7 +8,7 @@
 //! descriptor space learned from generic images, so two views of one place share words even
 //! where their descriptors are far apart (docs/decisions/0001-bag-of-words-place-recognition.md).
 
-use crate::preprocess::{Descriptor, hamming};
+use crate::components::preprocess::{Descriptor, hamming};
 use crate::{Error, Result};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -18,7 +18,7 @@ use std::sync::{Arc, Mutex, OnceLock};
 
 /// The vocabulary shipped with homing: k = 10, 5 levels, trained by `vocab-tools train` on
 /// 1,500 generic photos (ImageNet samples and BSDS500; see vocab/README.md).
-static BUILT_IN: &[u8] = include_bytes!("../../vocab/orb_k10_l5.voc");
+static BUILT_IN: &[u8] = include_bytes!("../../../vocab/orb_k10_l5.voc");
 
 const MAGIC: &[u8; 8] = b"HOMVOC01";
 

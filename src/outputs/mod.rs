@@ -11,6 +11,10 @@
 //!
 //! All files are written atomically, so an interrupted run never leaves a half-written result.
 
+pub mod mcap_log;
+pub mod report;
+pub mod viz;
+
 use crate::config::{CameraConfig, CameraSource, Config};
 use crate::error::{Error, Result};
 use crate::io::atomic_write;

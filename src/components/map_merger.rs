@@ -2,18 +2,18 @@
 //! (ORB-SLAM's RGB-D criteria), map points from depth back-projection, point fusion with the
 //! covisible keyframes, culling, and local bundle adjustment (optim::local_ba, faer).
 
-use crate::aligner::backproject;
 use crate::atlas::Atlas;
+use crate::components::aligner::backproject;
+use crate::components::preprocess::{
+    ImageGeometry, Measurement, dominant_rotation_bins, hamming, rotation_bin,
+};
+use crate::components::tracker::TrackResult;
+use crate::components::two_view::{k_matrix, projection_matrix, triangulate};
 use crate::config::MappingConfig;
 use crate::map::{KfId, Map, PointId};
 use crate::optim::{
     self, BaCamera, BaObservation, BaParams, BaPoint, BaProblem, Observation, octave_information,
 };
-use crate::preprocess::{
-    ImageGeometry, Measurement, dominant_rotation_bins, hamming, rotation_bin,
-};
-use crate::tracker::TrackResult;
-use crate::two_view::{k_matrix, projection_matrix, triangulate};
 use nalgebra::{Isometry3, Matrix3, Point3, Vector2, Vector3};
 use std::collections::{BTreeMap, BTreeSet};
 
@@ -462,7 +462,7 @@ impl MapMerger {
                 let Some(x) = triangulate(&p1, &p2, &kp1.un, &kp2.un) else {
                     continue;
                 };
-                let ok = |pose: &Isometry3<f64>, kp: &crate::preprocess::Keypoint| {
+                let ok = |pose: &Isometry3<f64>, kp: &crate::components::preprocess::Keypoint| {
                     let pc = pose * Point3::from(x);
                     if pc.z <= 0.0 {
                         return false;
@@ -1030,7 +1030,7 @@ impl MapMerger {
         &self,
         map: &mut Map,
         frames: &[&FrameObservations],
-        depth_edges: &[crate::depth_registration::DepthEdge],
+        depth_edges: &[crate::components::depth_registration::DepthEdge],
         cutoff: Option<optim::Cutoff>,
     ) -> Option<(optim::BaReport, FramePoses)> {
         let iterations = self.cfg.final_ba_iterations as usize;
@@ -1190,8 +1190,8 @@ impl MapMerger {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::components::tracker::TrackMethod;
     use crate::optim::Intrinsics;
-    use crate::tracker::TrackMethod;
     use nalgebra::Vector6;
 
     /// A monocular map whose reference keyframe (at the origin) sees 300 points of a wall 2 m

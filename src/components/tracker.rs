@@ -6,12 +6,12 @@
 //! those matches. Whatever succeeds is refined against the local map (points of the keyframes
 //! that see the matched points, and their covisible neighbours).
 
-use crate::aligner::pnp_ransac;
+use crate::components::aligner::pnp_ransac;
+use crate::components::preprocess::{Descriptor, ImageGeometry, Measurement, hamming};
 use crate::config::TrackerConfig;
 use crate::map::{KfId, Map, PointId};
 use crate::optim::se3;
 use crate::optim::{Observation, PoseObservation, PoseParams, octave_information, refine_pose};
-use crate::preprocess::{Descriptor, ImageGeometry, Measurement, hamming};
 use nalgebra::{Isometry3, Vector2, Vector3, Vector6};
 
 /// How the pose of a frame was found.
@@ -569,13 +569,14 @@ impl Tracker {
                 matches[bi] = Some(c.id);
                 rotation_bin[bi] = c
                     .ref_angle
-                    .map(|a| crate::preprocess::rotation_bin(a, m.keypoints[bi].angle));
+                    .map(|a| crate::components::preprocess::rotation_bin(a, m.keypoints[bi].angle));
             }
         }
         // Rotation consistency (ORB-SLAM): between two frames every true match turns by about
         // the same angle; matches outside the three dominant bins of the histogram are dropped.
-        let keep =
-            crate::preprocess::dominant_rotation_bins(rotation_bin.iter().flatten().copied());
+        let keep = crate::components::preprocess::dominant_rotation_bins(
+            rotation_bin.iter().flatten().copied(),
+        );
         for (i, b) in rotation_bin.iter().enumerate() {
             if let Some(b) = b
                 && !keep.contains(b)

@@ -6,20 +6,20 @@
 //! Monocular: one frame cannot be back-projected, so the initializer is a two-view
 //! structure-from-motion step (ORB-SLAM2's `Initializer`): it keeps a reference measurement,
 //! matches every new measurement to it, and when the two views have enough matches and enough
-//! parallax, [`crate::two_view::initialize_two_view`] recovers the relative motion and the
+//! parallax, [`crate::components::two_view::initialize_two_view`] recovers the relative motion and the
 //! points. The map then starts with two keyframes (the reference at the origin, the current
 //! frame at the recovered pose), refined by a two-view bundle adjustment, with the scale fixed
 //! by a median scene depth of 1 (monocular scale is unobservable; this is ORB-SLAM's choice).
 //! The initializer only computes; whether it runs is the controller's decision.
 
-use crate::aligner::backproject;
-use crate::map::{KfId, Map};
-use crate::map_merger::bundle_adjust;
-use crate::optim::{BaParams, Intrinsics};
-use crate::preprocess::{
+use crate::components::aligner::backproject;
+use crate::components::map_merger::bundle_adjust;
+use crate::components::preprocess::{
     ImageGeometry, Measurement, dominant_rotation_bins, nearest_descriptor, rotation_bin,
 };
-use crate::two_view::{TwoViewParams, initialize_two_view};
+use crate::components::two_view::{TwoViewParams, initialize_two_view};
+use crate::map::{KfId, Map};
+use crate::optim::{BaParams, Intrinsics};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector2};
 
 /// Monocular matching: search radius around the reference keypoint's pixel (ORB-SLAM's
@@ -174,7 +174,7 @@ impl Initializer {
         r: &Measurement,
         m: &Measurement,
         matches: &Matches,
-        rec: &crate::two_view::TwoViewReconstruction,
+        rec: &crate::components::two_view::TwoViewReconstruction,
         mut map: Map,
     ) -> Option<(Map, KfId)> {
         let pose2 = Isometry3::from_parts(

@@ -102,7 +102,7 @@ pub struct Measurement {
     pub grid: FeatureGrid,
     /// The depth image sampled on a regular [`SURFACE_COLS`] × [`SURFACE_ROWS`] grid, row
     /// by row, in millimetres (0 = no reading): the surfaces a keyframe saw, for depth
-    /// registration between keyframes that share no key point (`crate::depth_registration`).
+    /// registration between keyframes that share no key point (`crate::components::depth_registration`).
     /// Empty without depth. The rays of the samples are [`Preprocessor::surface_rays`].
     pub surface: Vec<u16>,
 }

@@ -22,7 +22,7 @@ use crate::eval::run::{ClosureCheck, MapAte};
 use crate::eval::{self, Alignment, Associated, AteResult, RpeResult, RpeUnit};
 use crate::io::atomic_write;
 use crate::io::tum::{StampedPose, read_trajectory};
-use crate::output::{
+use crate::outputs::{
     ClosureRow, StateCsvRow, Summary, read_closures, read_state_maps, read_states,
 };
 use base64::Engine as _;

@@ -342,7 +342,7 @@ fn register_within(
 }
 
 /// The points (camera frame, metres) of a keyframe's depth grid `surface` (millimetres, see
-/// [`crate::preprocess::Measurement::surface`]) along their `rays`, up to `max_depth_m`
+/// [`crate::components::preprocess::Measurement::surface`]) along their `rays`, up to `max_depth_m`
 /// (the sensor's noise grows with the square of the depth).
 pub fn surface_points(
     surface: &[u16],
@@ -1008,7 +1008,7 @@ fn register_pair(
 
 /// Geometric edges of `map`: pairs of keyframes at least [`EdgeSearch::min_hops`] apart in the
 /// covisibility graph that see surfaces in common cells (by their current poses), registered
-/// by their depth grids (`rays` from [`crate::preprocess::Preprocessor::surface_rays`]). Most
+/// by their depth grids (`rays` from [`crate::components::preprocess::Preprocessor::surface_rays`]). Most
 /// shared cells first; a pair next to one already tried (both ends within one hop) is
 /// skipped.
 pub fn seam_edges(map: &Map, rays: &[Vector2<f64>], search: &EdgeSearch) -> Vec<DepthEdge> {
@@ -1462,8 +1462,10 @@ mod tests {
     /// without information.
     #[test]
     fn seam_edges_join_the_legs_of_a_corridor() {
+        use crate::components::preprocess::{
+            Measurement, SURFACE_COLS, SURFACE_ROWS, surface_pixel,
+        };
         use crate::optim::Intrinsics;
-        use crate::preprocess::{Measurement, SURFACE_COLS, SURFACE_ROWS, surface_pixel};
         let intr = Intrinsics::TUM_FREIBURG1;
         let rays: Vec<Vector2<f64>> = (0..SURFACE_ROWS)
             .flat_map(|r| (0..SURFACE_COLS).map(move |c| surface_pixel(c, r, 640, 480)))

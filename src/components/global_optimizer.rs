@@ -142,7 +142,8 @@ pub fn optimize_map(
     // pool takes candidates within `POOL_MAX_LOG_SCALE` of each other as one: it is known to
     // about half that (2 σ), not to the odometry's 0.5° equivalent (0.9 %). Held that tight, a
     // right merge into a young map whose scale was still settling failed the consistency check.
-    let closure_scale_info = 1.0 / (0.5 * crate::loop_validator::POOL_MAX_LOG_SCALE).powi(2);
+    let closure_scale_info =
+        1.0 / (0.5 * crate::components::loop_validator::POOL_MAX_LOG_SCALE).powi(2);
     let mut pools = Vec::new();
     for c in closures {
         let (Some(&im), Some(&iq)) = (index.get(&c.matched), index.get(&c.query)) else {
@@ -317,7 +318,7 @@ impl Expectation {
 /// the keyframe saw clearly through them). Perceptual aliasing (a copy of a room) passes every
 /// test local to the matched place; the rest of the two maps seldom agrees.
 pub fn merge_depth_check(
-    geo: &crate::preprocess::ImageGeometry,
+    geo: &crate::components::preprocess::ImageGeometry,
     into: &Map,
     from: &Map,
     alignment: &Isometry3<f64>,
@@ -370,7 +371,7 @@ const APPEARANCE_VIEW_COS: f64 = 0.6;
 /// found: per keyframe with 50 or more confirmed points, right merges of the benchmark found
 /// 14–96 %, `aliasing`'s look-alikes 2–4 % (2026-11-29).
 pub fn merge_appearance_check(
-    geo: &crate::preprocess::ImageGeometry,
+    geo: &crate::components::preprocess::ImageGeometry,
     into: &Map,
     from: &Map,
     alignment: &Isometry3<f64>,
@@ -384,7 +385,7 @@ pub fn merge_appearance_check(
 /// (within their scale range and [`APPEARANCE_VIEW_COS`]), and those of them it also finds by
 /// descriptor.
 fn found_by_appearance<'a>(
-    geo: &crate::preprocess::ImageGeometry,
+    geo: &crate::components::preprocess::ImageGeometry,
     kf: &crate::map::Keyframe,
     pose_cw: &Isometry3<f64>,
     points: impl Iterator<Item = &'a crate::map::MapPoint>,
@@ -404,7 +405,7 @@ fn found_by_appearance<'a>(
             .in_area(&kf.keypoints, uv.x, uv.y, APPEARANCE_SEARCH_PX, 0, u8::MAX)
             .iter()
             .any(|&i| {
-                crate::preprocess::hamming(&kf.descriptors[i], &p.descriptor)
+                crate::components::preprocess::hamming(&kf.descriptors[i], &p.descriptor)
                     <= APPEARANCE_MAX_DISTANCE
             })
         {
@@ -418,7 +419,7 @@ fn found_by_appearance<'a>(
 /// within `min_cos` of their mean viewing direction: (point, position in the camera, pixel,
 /// distance from the camera).
 fn in_view<'a>(
-    geo: &crate::preprocess::ImageGeometry,
+    geo: &crate::components::preprocess::ImageGeometry,
     pose_cw: &Isometry3<f64>,
     points: impl Iterator<Item = &'a crate::map::MapPoint>,
     min_cos: f64,
@@ -448,7 +449,7 @@ fn in_view<'a>(
 /// other place's structure — the contradiction the expectation check of Localized finds,
 /// here for Mapping.
 pub fn keyframe_depth_check(
-    geo: &crate::preprocess::ImageGeometry,
+    geo: &crate::components::preprocess::ImageGeometry,
     map: &Map,
     kf: KfId,
     judge: impl Fn(&crate::map::MapPoint) -> bool,
@@ -481,7 +482,7 @@ const MIN_VIEW_COS: f64 = 0.5;
 /// clearly through (every reading near the projection is farther than the point). Only points
 /// within their visibility cone ([`MIN_VIEW_COS`]) are judged.
 fn seen_through<'a>(
-    geo: &crate::preprocess::ImageGeometry,
+    geo: &crate::components::preprocess::ImageGeometry,
     kf: &crate::map::Keyframe,
     pose_cw: &Isometry3<f64>,
     points: impl Iterator<Item = &'a crate::map::MapPoint>,
@@ -526,8 +527,8 @@ const DEPTH_SEARCH_PX: f64 = 6.0;
 
 /// Depth readings (m) of the keypoints within [`DEPTH_SEARCH_PX`] of pixel (`u`, `v`).
 fn depths_near(
-    grid: &crate::preprocess::FeatureGrid,
-    keypoints: &[crate::preprocess::Keypoint],
+    grid: &crate::components::preprocess::FeatureGrid,
+    keypoints: &[crate::components::preprocess::Keypoint],
     depth: &[f32],
     u: f64,
     v: f64,
@@ -540,10 +541,10 @@ fn depths_near(
 }
 
 pub fn expectation(
-    geo: &crate::preprocess::ImageGeometry,
+    geo: &crate::components::preprocess::ImageGeometry,
     map: &Map,
-    m: &crate::preprocess::Measurement,
-    track: &crate::tracker::TrackResult,
+    m: &crate::components::preprocess::Measurement,
+    track: &crate::components::tracker::TrackResult,
     cell_px: f64,
     coverage_cell_px: f64,
 ) -> Expectation {
@@ -600,8 +601,8 @@ pub fn expectation(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::components::preprocess::{ImageGeometry, Measurement};
     use crate::optim::Intrinsics;
-    use crate::preprocess::{ImageGeometry, Measurement};
     use nalgebra::{Vector2, Vector3};
 
     /// A 20 × 15 grid of keypoints over a 640 × 480 image, every one with depth `depth` and

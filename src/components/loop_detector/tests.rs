@@ -1,5 +1,5 @@
 use super::*;
-use crate::preprocess::hamming;
+use crate::components::preprocess::hamming;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 

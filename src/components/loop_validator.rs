@@ -22,21 +22,21 @@
 //!
 //! The validator reports; the state machine decides what an accepted pool leads to.
 
-use crate::aligner::{backproject, pnp_ransac, rigid_ransac};
+use crate::components::aligner::{backproject, pnp_ransac, rigid_ransac};
+use crate::components::preprocess::{
+    ImageGeometry, Measurement, dominant_rotation_bins, hamming, nearest_descriptor, rotation_bin,
+};
+use crate::components::two_view::{Sim3RansacParams, sim3_ransac};
 use crate::config::LoopClosingConfig;
 use crate::geometry::Sim3;
 use crate::map::{KfId, Map, PointId};
 use crate::optim::{
     Observation, PoseObservation, PoseParams, octave_information, refine_pose, se3,
 };
-use crate::preprocess::{
-    ImageGeometry, Measurement, dominant_rotation_bins, hamming, nearest_descriptor, rotation_bin,
-};
-use crate::two_view::{Sim3RansacParams, sim3_ransac};
 use nalgebra::{Isometry3, Matrix6, Point3, Vector2, Vector3};
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 
-pub use crate::loop_detector::Candidate;
+pub use crate::components::loop_detector::Candidate;
 
 /// Why a candidate was not valid.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
