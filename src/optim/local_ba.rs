@@ -65,7 +65,8 @@ pub struct BaObservation {
 /// cameras): `a_from_b` ≈ `T_a · T_b⁻¹` (maps `b`'s camera frame into `a`'s), with
 /// information `info` over a left perturbation (ω, υ) of it. What a depth registration of
 /// surfaces two keyframes share without a common key point measures (see
-/// `crate::components::depth_registration`); directions the surfaces leave free carry no information.
+/// `crate::components::depth_registration`); directions the surfaces leave free carry no
+/// information.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct BaPoseEdge {
     pub a: usize,
@@ -416,6 +417,25 @@ impl Structure {
             n_values,
         })
     }
+
+    /// Applies `f(value, row, column)` to each stored value of block `b` of the reduced
+    /// system (row and column within the 6×6 block; a diagonal block stores its upper
+    /// triangle only).
+    fn block_values(
+        &self,
+        b: usize,
+        mut f: impl FnMut(&mut f64, usize, usize),
+        values: &mut [f64],
+    ) {
+        let (ci, cj) = self.blocks[b];
+        for c in 0..6 {
+            let rows = if ci == cj { c + 1 } else { 6 };
+            let off = self.block_offsets[b][c];
+            for (r, v) in values[off..off + rows].iter_mut().enumerate() {
+                f(v, r, c);
+            }
+        }
+    }
 }
 
 /// Calls `f(i, j, ci, cj)` for each pair of a point's observations `obs` (`i`, `j` index
@@ -437,27 +457,6 @@ fn for_each_pair(
             };
             if ci <= cj {
                 f(i, j, ci, cj);
-            }
-        }
-    }
-}
-
-impl Structure {
-    /// Applies `f(value, row, column)` to each stored value of block `b` of the reduced
-    /// system (row and column within the 6×6 block; a diagonal block stores its upper
-    /// triangle only).
-    fn block_values(
-        &self,
-        b: usize,
-        mut f: impl FnMut(&mut f64, usize, usize),
-        values: &mut [f64],
-    ) {
-        let (ci, cj) = self.blocks[b];
-        for c in 0..6 {
-            let rows = if ci == cj { c + 1 } else { 6 };
-            let off = self.block_offsets[b][c];
-            for (r, v) in values[off..off + rows].iter_mut().enumerate() {
-                f(v, r, c);
             }
         }
     }
