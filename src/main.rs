@@ -188,11 +188,21 @@ enum BenchCmd {
     /// Example: homing bench robustness --sequence data/fr1_xyz --out out/robustness
     Robustness {
         /// TUM RGB-D folders (repeatable).
-        #[arg(long, required_unless_present = "plot_only", num_args = 1..)]
+        #[arg(long, required_unless_present_any = ["plot_only", "collect"], num_args = 1..)]
         sequence: Vec<PathBuf>,
         /// Only redraw OUT/robustness.png from OUT/robustness.csv (no runs).
         #[arg(long)]
         plot_only: bool,
+        /// Run nothing: write the plan (OUT/jobs.txt, one `homing` command a line, and
+        /// OUT/jobs.json) and the inputs its jobs share, for a cluster's job array
+        /// (scripts/slurm/robustness.sbatch) or any other executor; then `--collect OUT`.
+        #[arg(long, conflicts_with_all = ["plot_only", "resume"])]
+        plan_only: bool,
+        /// Build OUT/robustness.{csv,md,json,png} (and the case study's table) from the run
+        /// folders of the plan in DIR, whoever ran its lines; the lines not finished are
+        /// listed (DIR/unfinished.txt) and the command fails until they are.
+        #[arg(long, value_name = "DIR", conflicts_with_all = ["sequence", "plot_only", "plan_only", "resume"])]
+        collect: Option<PathBuf>,
         /// Run every row monocular (depth suppressed); no separate depth-suppressed row.
         #[arg(long)]
         mono: bool,
@@ -511,6 +521,9 @@ fn main() {
             resume,
         }) => cmd_case_study(out, data, small, threaded, controller, config, resume),
         Cmd::Bench(BenchCmd::Robustness {
+            collect: Some(dir), ..
+        }) => cmd_collect(&dir),
+        Cmd::Bench(BenchCmd::Robustness {
             plot_only: true,
             out,
             ..
@@ -531,6 +544,8 @@ fn main() {
         Cmd::Bench(BenchCmd::Robustness {
             sequence,
             plot_only: false,
+            plan_only,
+            collect: None,
             mono,
             controller,
             jobs,
@@ -559,7 +574,10 @@ fn main() {
                 exe: None,
                 resume,
             };
-            homing::bench::robustness::robustness(&opts)
+            if plan_only {
+                cmd_plan(&opts)
+            } else {
+                homing::bench::robustness::robustness(&opts)
                 .map(|(_, md)| {
                     print!("\n{md}");
                     println!(
@@ -568,6 +586,7 @@ fn main() {
                     );
                 })
                 .map_err(Into::into)
+            }
         }
     };
     if let Err(e) = result {
@@ -578,6 +597,49 @@ fn main() {
         eprintln!("stopped by the user: the finished results are written");
         std::process::exit(homing::interrupt::EXIT_STATUS);
     }
+}
+
+/// `bench robustness --plan-only`: the plan written, and how to run it.
+fn cmd_plan(opts: &homing::bench::robustness::Options) -> Result<()> {
+    use homing::bench::plan::{JOBS_JSON, JOBS_TXT};
+    let plan = homing::bench::robustness::plan_only(opts)?;
+    let out = std::path::absolute(&opts.out).unwrap_or_else(|_| opts.out.clone());
+    let n = plan.jobs.len();
+    println!(
+        "written: {0}/{JOBS_TXT} ({n} jobs, one a line), {0}/{JOBS_JSON}",
+        out.display()
+    );
+    println!(
+        "run it: sbatch --array=1-{n}%M --export=ALL,PLAN={0} scripts/slurm/robustness.sbatch \
+         (or any executor of {0}/{JOBS_TXT}), then: homing bench robustness --collect {0}",
+        out.display()
+    );
+    Ok(())
+}
+
+/// `bench robustness --collect DIR`: the reports from the plan's run folders; fails (after
+/// writing them) while lines are not finished, naming them.
+fn cmd_collect(dir: &std::path::Path) -> Result<()> {
+    let c = homing::bench::robustness::collect(dir)?;
+    print!("\n{}", c.md);
+    println!(
+        "\nwritten: {0}/robustness.csv, {0}/robustness.md, {0}/robustness.json, {0}/robustness.png",
+        dir.display()
+    );
+    if c.unfinished.is_empty() {
+        return Ok(());
+    }
+    for (line, why) in &c.unfinished {
+        eprintln!("line {line}: {why}");
+    }
+    let lines: Vec<usize> = c.unfinished.iter().map(|u| u.0).collect();
+    Err(anyhow::anyhow!(
+        "{} of the plan's jobs are not finished (listed in {}): run lines {} again (sbatch --array={} ...), then collect again",
+        lines.len(),
+        dir.join(homing::bench::plan::UNFINISHED_TXT).display(),
+        homing::bench::plan::array_spec(&lines),
+        homing::bench::plan::array_spec(&lines)
+    ))
 }
 
 fn cmd_run(a: RunArgs, quiet: bool) -> Result<()> {
@@ -897,6 +959,7 @@ fn cmd_case_study(
         config,
         jobs: 0,
         resume,
+        collect_only: false,
     };
     let (_, md) = case_study::case_study(&data, &out, &opts)?;
     print!("{md}");

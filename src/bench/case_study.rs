@@ -122,6 +122,9 @@ pub struct Options {
     /// Reuse the controllers a stopped (or earlier) case study with the same data, config and
     /// mode finished in OUT (see [`DONE_MARK`]); only the others run.
     pub resume: bool,
+    /// Run nothing: only the controllers finished in OUT (by another process, such as a
+    /// benchmark plan's job) make the table; the others are reported as not finished.
+    pub collect_only: bool,
 }
 
 impl Default for Options {
@@ -132,6 +135,7 @@ impl Default for Options {
             config: None,
             jobs: 0,
             resume: false,
+            collect_only: false,
         }
     }
 }
@@ -263,29 +267,38 @@ fn finished_or_run(
     out: &Path,
     o: &Options,
 ) -> Result<Option<ControllerResult>> {
-    let mark = out.join(kind.as_str()).join(DONE_MARK);
-    let id = identity(kind, data, o);
-    if o.resume
-        && let Ok(text) = std::fs::read_to_string(&mark)
-        && let Ok(done) = serde_json::from_str::<Done>(&text)
-        && done.identity == id
+    if (o.resume || o.collect_only)
+        && let Some(result) = finished(kind, data, out, o)
     {
-        tracing::info!("resumed: {} is finished", mark.display());
-        return Ok(Some(done.result));
+        tracing::info!("{} is finished", out.join(kind.as_str()).display());
+        return Ok(Some(result));
     }
-    if crate::interrupt::stop_requested() {
+    if o.collect_only || crate::interrupt::stop_requested() {
         return Ok(None);
     }
     let Some(result) = run_controller(kind, session, out, o)? else {
         return Ok(None);
     };
     let done = Done {
-        identity: id,
+        identity: identity(kind, data, o),
         result,
     };
     let json = serde_json::to_vec_pretty(&done).map_err(|e| Error::invalid(e.to_string()))?;
-    crate::io::atomic_write(&mark, &json)?;
+    crate::io::atomic_write(&out.join(kind.as_str()).join(DONE_MARK), &json)?;
     Ok(Some(done.result))
+}
+
+/// Controller `kind`'s result when a case study with the same data, config and mode
+/// finished it in OUT (its [`DONE_MARK`]), whichever process ran it.
+pub fn finished(
+    kind: ControllerKind,
+    data: &Path,
+    out: &Path,
+    o: &Options,
+) -> Option<ControllerResult> {
+    let text = std::fs::read_to_string(out.join(kind.as_str()).join(DONE_MARK)).ok()?;
+    let done = serde_json::from_str::<Done>(&text).ok()?;
+    (done.identity == identity(kind, data, o)).then_some(done.result)
 }
 
 /// Runs the controllers on both sessions under `data` (session1/, session2/) and writes
@@ -319,7 +332,13 @@ pub fn case_study(data: &Path, out: &Path, o: &Options) -> Result<(CaseStudy, St
         controllers: results.into_iter().flatten().collect(),
     };
     let mut md = markdown(&cs, &steps1, &steps2);
-    if unfinished > 0 {
+    if unfinished > 0 && o.collect_only {
+        let _ = writeln!(
+            md,
+            "\n**Not finished:** {unfinished} of {} controllers (their jobs did not finish): run them, then collect again.",
+            o.controllers.len()
+        );
+    } else if unfinished > 0 {
         let _ = writeln!(
             md,
             "\n**Stopped by the user:** {unfinished} of {} controllers not finished; the same command with `--resume` runs only those.",

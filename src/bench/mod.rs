@@ -8,6 +8,7 @@
 pub mod case_study;
 pub mod memory;
 pub mod overlap;
+pub mod plan;
 pub mod robustness;
 pub mod robustness_plot;
 

@@ -12,11 +12,16 @@
 //! so the CSV records the command without them. A run counts the extraction time recorded in
 //! the features file as its own (`wall_s`, `fps`).
 //!
+//! The jobs are a plan ([`super::plan`]: OUT/jobs.txt, one command a line): run here by
+//! [`robustness`] (`--jobs` at a time), or anywhere else after [`plan_only`] (a Slurm job
+//! array), and the reports are made from the run folders alone by the same code ([`collect`]).
+//!
 //! The grid is derived from the sequence's time stamps only, so it is the same on every machine
 //! and every invocation: drops are evenly spread (event `i` of `k` centred at `i/(k+1)` of the
 //! duration), random faults use a fixed seed.
 
 use crate::bench::case_study;
+use crate::bench::plan::{JobKind, Plan, PlanOptions, PlannedJob, shell_line};
 use crate::config::{Config, ControllerKind};
 use crate::error::{Error, Result};
 use crate::io::tum::TumSequence;
@@ -309,18 +314,6 @@ pub const CSV_COLUMNS: [&str; 18] = [
     "error",
 ];
 
-/// A shell word: quoted only when it has to be, so commands stay copy-pasteable.
-fn shell_quote(s: &str) -> String {
-    if !s.is_empty()
-        && s.chars()
-            .all(|c| c.is_ascii_alphanumeric() || "-_./:@=,+%".contains(c))
-    {
-        s.to_string()
-    } else {
-        format!("'{}'", s.replace('\'', r"'\''"))
-    }
-}
-
 fn csv_field(s: &str) -> String {
     if s.contains([',', '"', '\n', '\r']) {
         format!("\"{}\"", s.replace('"', "\"\""))
@@ -386,11 +379,27 @@ struct Job {
     features: Option<PathBuf>,
 }
 
+impl Job {
+    /// The command the plan's line runs: `argv` with the prepared inputs.
+    fn line(&self) -> Vec<String> {
+        let mut l = self.argv.clone();
+        if let Some(d) = &self.decoded {
+            l.push("--decoded-frames".into());
+            l.push(d.to_string_lossy().into_owned());
+        }
+        if let Some(f) = &self.features {
+            l.push("--features".into());
+            l.push(f.to_string_lossy().into_owned());
+        }
+        l
+    }
+}
+
 /// Writes the features of the decoded frames `decoded` of `seq_dir` as a run with `mono`
 /// extracts them to `path`; `None` (warned) when that fails, and the runs then extract them.
 fn extract_sequence(
     seq_dir: &Path,
-    o: &Options,
+    config: Option<&Path>,
     mono: bool,
     decoded: &Path,
     path: &Path,
@@ -401,8 +410,7 @@ fn extract_sequence(
         seq_dir,
         ("extracted", "extract their features"),
         || {
-            let (seq, camera, orb) =
-                crate::system::open_run_front_end(seq_dir, o.config.as_deref(), mono)?;
+            let (seq, camera, orb) = crate::system::open_run_front_end(seq_dir, config, mono)?;
             let frames = crate::io::decoded::DecodedFrames::open(
                 decoded,
                 &seq,
@@ -447,21 +455,19 @@ fn prepared_once(
 /// `path`; `None` (warned) when that fails, and the runs then decode their images.
 fn decode_sequence(
     seq_dir: &Path,
-    o: &Options,
+    config: Option<&Path>,
     mono: bool,
     path: &Path,
     jobs: usize,
 ) -> Option<PathBuf> {
     prepared_once(path, seq_dir, ("decoded", "decode their images"), || {
-        let seq = crate::system::open_run_sequence(seq_dir, o.config.as_deref(), mono)?;
+        let seq = crate::system::open_run_sequence(seq_dir, config, mono)?;
         crate::io::decoded::write(path, &seq, jobs)
     })
 }
 
-/// Runs the grid (and the case study, when asked) and writes OUT/robustness.{csv,md,json};
-/// returns the rows and the Markdown report.
-pub fn robustness(o: &Options) -> Result<(Vec<Row>, String)> {
-    let wall = Instant::now();
+/// The plan's options for `o`: absolute paths, the controllers and the binary resolved.
+fn plan_options(o: &Options) -> Result<PlanOptions> {
     if o.sequences.is_empty() {
         return Err(Error::invalid("bench robustness: no --sequence given"));
     }
@@ -474,29 +480,42 @@ pub fn robustness(o: &Options) -> Result<(Vec<Row>, String)> {
             secs(MIN_TRACKED_GAP_S)
         )));
     }
-    let controllers = if o.controllers.is_empty() {
-        case_study::CONTROLLERS.to_vec()
-    } else {
-        o.controllers.clone()
-    };
     let exe = match &o.exe {
         Some(e) => e.clone(),
         None => std::env::current_exe()
             .map_err(|e| Error::invalid(format!("cannot find the homing binary: {e}")))?,
     };
-    let jobs = super::resolve_jobs(o.jobs);
-    let abs = |p: &Path| std::path::absolute(p).unwrap_or_else(|_| p.to_path_buf());
-    let out = abs(&o.out);
-    std::fs::create_dir_all(&out).map_err(|e| Error::file(&out, format!("cannot create: {e}")))?;
-    let max_dt = match &o.config {
-        Some(p) => Config::load(p)?.sequence.max_association_dt,
+    Ok(PlanOptions {
+        sequences: o.sequences.iter().map(|s| absolute(s)).collect(),
+        mono: o.mono,
+        controllers: if o.controllers.is_empty() {
+            case_study::CONTROLLERS.to_vec()
+        } else {
+            o.controllers.clone()
+        },
+        quick: o.quick,
+        drop_shift: o.drop_shift,
+        config: o.config.as_deref().map(absolute),
+        case_study: o.case_study.as_deref().map(absolute),
+        exe,
+    })
+}
+
+fn absolute(p: &Path) -> PathBuf {
+    std::path::absolute(p).unwrap_or_else(|_| p.to_path_buf())
+}
+
+/// The grid of every sequence, and one job per (sequence, perturbation, controller) writing
+/// under `out` (absolute), in table order; no input prepared yet. Reads only the sequences'
+/// frame lists, so `--collect` can make it again.
+fn grid_jobs(p: &PlanOptions, out: &Path) -> Result<(Vec<SeqInfo>, Vec<Job>)> {
+    let max_dt = match &p.config {
+        Some(c) => Config::load(c)?.sequence.max_association_dt,
         None => Config::default().sequence.max_association_dt,
     };
-
-    // The grid of every sequence, then one job per (sequence, perturbation, controller).
     let mut seqs: Vec<SeqInfo> = Vec::new();
     let mut queue: Vec<Job> = Vec::new();
-    for dir in &o.sequences {
+    for dir in &p.sequences {
         let name = dir
             .file_name()
             .map(|n| n.to_string_lossy().into_owned())
@@ -509,35 +528,39 @@ pub fn robustness(o: &Options) -> Result<(Vec<Row>, String)> {
             ));
         }
         // Only the lists are read (images load lazily): the stamps the run will see.
-        let seq = TumSequence::open(dir, 0, 0, 1.0, max_dt, o.mono)?;
+        let seq = TumSequence::open(dir, 0, 0, 1.0, max_dt, p.mono)?;
         let stamps: Vec<f64> = seq.frames.iter().map(|f| f.t).collect();
-        let g = grid(&stamps, o.quick, o.mono, o.drop_shift);
-        for p in &g.perturbations {
-            for &c in &controllers {
-                let run_dir = out.join("runs").join(&name).join(&p.name).join(c.as_str());
+        let g = grid(&stamps, p.quick, p.mono, p.drop_shift);
+        for pert in &g.perturbations {
+            for &c in &p.controllers {
+                let run_dir = out
+                    .join("runs")
+                    .join(&name)
+                    .join(&pert.name)
+                    .join(c.as_str());
                 let mut argv = vec![
-                    exe.to_string_lossy().into_owned(),
+                    p.exe.to_string_lossy().into_owned(),
                     "-q".into(),
                     "run".into(),
                     "--sequence".into(),
-                    abs(dir).to_string_lossy().into_owned(),
+                    dir.to_string_lossy().into_owned(),
                     "--out".into(),
                     run_dir.to_string_lossy().into_owned(),
                     "--eval".into(),
                     "--controller".into(),
                     c.as_str().into(),
                 ];
-                if let Some(cfg) = &o.config {
+                if let Some(cfg) = &p.config {
                     argv.push("--config".into());
-                    argv.push(abs(cfg).to_string_lossy().into_owned());
+                    argv.push(cfg.to_string_lossy().into_owned());
                 }
-                if o.mono {
+                if p.mono {
                     argv.push("--mono".into());
                 }
-                argv.extend(p.args.iter().cloned());
+                argv.extend(pert.args.iter().cloned());
                 queue.push(Job {
                     sequence: name.clone(),
-                    perturbation: p.clone(),
+                    perturbation: pert.clone(),
                     controller: c,
                     dir: run_dir,
                     argv,
@@ -553,35 +576,47 @@ pub fn robustness(o: &Options) -> Result<(Vec<Row>, String)> {
             grid: g,
         });
     }
+    Ok((seqs, queue))
+}
 
-    // Each sequence's images decoded once for all of its runs (deleted after the grid).
-    let frames_dir = out.join("decoded-frames");
+/// Where the prepared inputs of a plan in `out` go (deleted once every job finished).
+fn prepared_dir(out: &Path) -> PathBuf {
+    out.join("decoded-frames")
+}
+
+/// Decodes each sequence's images and extracts their features once for all of its runs
+/// (per sequence and mode), and points the jobs at the files.
+fn prepare_inputs(queue: &mut [Job], seqs: &[SeqInfo], p: &PlanOptions, out: &Path, jobs: usize) {
+    let frames_dir = prepared_dir(out);
     if let Err(e) = std::fs::create_dir_all(&frames_dir) {
         tracing::warn!("cannot create {}: {e}", frames_dir.display());
     }
-    let mut files: std::collections::BTreeMap<(String, bool), (Option<PathBuf>, Option<PathBuf>)> =
+    let mut files: BTreeMap<(String, bool), (Option<PathBuf>, Option<PathBuf>)> =
         Default::default();
-    for job in &mut queue {
+    for job in queue {
         // `--mono` is in the command when the whole bench is monocular or the perturbation is.
         let mono = job.argv.iter().any(|a| a == "--mono");
         let key = (job.sequence.clone(), mono);
         if !files.contains_key(&key) {
             let i = seqs.iter().position(|s| s.name == job.sequence);
-            let name = format!("{}{}.frames", job.sequence, if mono { "-mono" } else { "" });
+            let stem = format!("{}{}", job.sequence, if mono { "-mono" } else { "" });
+            let config = p.config.as_deref();
             let file = i.and_then(|i| {
-                decode_sequence(&o.sequences[i], o, mono, &frames_dir.join(name), jobs)
+                decode_sequence(
+                    &p.sequences[i],
+                    config,
+                    mono,
+                    &frames_dir.join(format!("{stem}.frames")),
+                    jobs,
+                )
             });
             let features = match (&file, i) {
                 (Some(f), Some(i)) => extract_sequence(
-                    &o.sequences[i],
-                    o,
+                    &p.sequences[i],
+                    config,
                     mono,
                     f,
-                    &frames_dir.join(format!(
-                        "{}{}.features",
-                        job.sequence,
-                        if mono { "-mono" } else { "" }
-                    )),
+                    &frames_dir.join(format!("{stem}.features")),
                     jobs,
                 ),
                 _ => None,
@@ -590,75 +625,350 @@ pub fn robustness(o: &Options) -> Result<(Vec<Row>, String)> {
         }
         (job.decoded, job.features) = files[&key].clone();
     }
-    tracing::info!(
-        "bench robustness: {} runs ({} sequences, {} controllers), {jobs} at a time",
-        queue.len(),
-        seqs.len(),
-        controllers.len()
-    );
-    // The case study (in-process, its controllers one after another) runs alongside the grid
-    // rather than after it: alone it left one of the two cores idle for a quarter of the
-    // benchmark's wall time.
-    let cs_opts = case_study::Options {
-        threaded: false,
-        controllers: controllers.clone(),
-        config: o.config.clone(),
-        jobs: 1,
-        resume: o.resume,
+}
+
+/// The case study's jobs: one per controller (both sessions), each a
+/// `homing bench case-study` writing OUT/case-study/CONTROLLER/.
+fn case_study_jobs(p: &PlanOptions, out: &Path) -> Vec<PlannedJob> {
+    let Some(data) = &p.case_study else {
+        return Vec::new();
     };
-    let cs_out = out.join("case-study");
-    let (rows, grid_s, cs) = std::thread::scope(|sc| {
-        let cs = o.case_study.as_ref().map(|data| {
-            tracing::info!("bench robustness: case study on {}", data.display());
-            sc.spawn(|| case_study::case_study(data, &cs_out, &cs_opts))
-        });
-        let rows = run_parallel(&queue, jobs, o.resume);
-        let grid_s = wall.elapsed().as_secs_f64();
-        if let Err(e) = std::fs::remove_dir_all(&frames_dir) {
-            tracing::warn!("cannot remove {}: {e}", frames_dir.display());
+    let cs_out = out.join(CASE_STUDY_DIR);
+    p.controllers
+        .iter()
+        .map(|&c| {
+            let mut argv = vec![
+                p.exe.to_string_lossy().into_owned(),
+                "-q".into(),
+                "bench".into(),
+                "case-study".into(),
+                "--data".into(),
+                data.to_string_lossy().into_owned(),
+                "--out".into(),
+                cs_out.to_string_lossy().into_owned(),
+                "--controller".into(),
+                c.as_str().into(),
+            ];
+            let mut needs = vec![data.clone()];
+            if let Some(cfg) = &p.config {
+                argv.push("--config".into());
+                argv.push(cfg.to_string_lossy().into_owned());
+                needs.push(cfg.clone());
+            }
+            PlannedJob {
+                line: 0,
+                kind: JobKind::CaseStudy,
+                sequence: None,
+                perturbation: None,
+                controller: c,
+                out: cs_out.join(c.as_str()),
+                argv,
+                needs,
+            }
+        })
+        .collect()
+}
+
+/// The case study's folder in the benchmark's output.
+const CASE_STUDY_DIR: &str = "case-study";
+
+/// How the case study's controllers are run and collected; the identity of their finished
+/// results (`case_study::DONE_MARK`) depends on it, so the plan's lines and `--collect`
+/// must agree: the defaults of `homing bench case-study`.
+fn case_study_options(p: &PlanOptions, collect_only: bool) -> case_study::Options {
+    case_study::Options {
+        threaded: false,
+        controllers: p.controllers.clone(),
+        config: p.config.clone(),
+        jobs: 1,
+        resume: true,
+        collect_only,
+    }
+}
+
+/// The plan: the case study's jobs first (the longest, so that a local executor or a
+/// scheduler starts them first), then the grid's runs in table order.
+fn make_plan(p: &PlanOptions, out: &Path, queue: &[Job]) -> Plan {
+    let mut jobs = case_study_jobs(p, out);
+    for j in queue {
+        let mut needs = vec![p.sequences[0].clone()];
+        if let Some(i) = j.argv.iter().position(|a| a == "--sequence") {
+            needs = vec![PathBuf::from(&j.argv[i + 1])];
         }
-        let cs = cs.map(|h| {
-            h.join()
-                .unwrap_or_else(|_| Err(Error::invalid("the case study panicked")))
+        needs.extend(p.config.iter().cloned());
+        needs.extend(j.decoded.iter().cloned());
+        needs.extend(j.features.iter().cloned());
+        jobs.push(PlannedJob {
+            line: 0,
+            kind: JobKind::Run,
+            sequence: Some(j.sequence.clone()),
+            perturbation: Some(j.perturbation.name.clone()),
+            controller: j.controller,
+            out: j.dir.clone(),
+            argv: j.line(),
+            needs,
         });
-        (rows, grid_s, cs)
-    });
-    let mut rows = rows;
-    attach_seen_again(&mut rows, &seqs, o);
-    let mut md = markdown(&seqs, &rows, &controllers, o.mono, o.drop_shift);
+    }
+    for (i, j) in jobs.iter_mut().enumerate() {
+        j.line = i + 1;
+    }
+    Plan {
+        homing_version: env!("CARGO_PKG_VERSION").into(),
+        options: p.clone(),
+        jobs,
+    }
+}
+
+/// A plan with everything its jobs share prepared, written to OUT.
+struct Planned {
+    options: PlanOptions,
+    out: PathBuf,
+    seqs: Vec<SeqInfo>,
+    queue: Vec<Job>,
+    plan: Plan,
+}
+
+/// Makes the plan of `o` in OUT: the grid, the prepared inputs, jobs.txt and jobs.json.
+fn plan_in(o: &Options, jobs: usize) -> Result<Planned> {
+    let options = plan_options(o)?;
+    let out = absolute(&o.out);
+    std::fs::create_dir_all(&out).map_err(|e| Error::file(&out, format!("cannot create: {e}")))?;
+    let (seqs, mut queue) = grid_jobs(&options, &out)?;
+    prepare_inputs(&mut queue, &seqs, &options, &out, jobs);
+    let plan = make_plan(&options, &out, &queue);
+    plan.write(&out)?;
+    Ok(Planned {
+        options,
+        out,
+        seqs,
+        queue,
+        plan,
+    })
+}
+
+/// `--plan-only`: writes OUT/jobs.txt, OUT/jobs.json and the prepared inputs, runs nothing.
+pub fn plan_only(o: &Options) -> Result<Plan> {
+    let p = plan_in(o, super::resolve_jobs(o.jobs))?;
+    tracing::info!(
+        "bench robustness: {} jobs planned in {}",
+        p.plan.jobs.len(),
+        p.out.join(super::plan::JOBS_TXT).display()
+    );
+    Ok(p.plan)
+}
+
+/// Runs the grid (and the case study, when asked) here, `o.jobs` lines of the plan at a time,
+/// and writes OUT/robustness.{csv,md,json,png}; returns the rows and the Markdown report.
+/// It is the plan's local executor: the rows are read from the run folders as `--collect`
+/// reads them.
+pub fn robustness(o: &Options) -> Result<(Vec<Row>, String)> {
+    let wall = Instant::now();
+    let jobs = super::resolve_jobs(o.jobs);
+    let p = plan_in(o, jobs)?;
+    tracing::info!(
+        "bench robustness: {} runs ({} sequences, {} controllers){}, {jobs} at a time",
+        p.queue.len(),
+        p.seqs.len(),
+        p.options.controllers.len(),
+        if p.options.case_study.is_some() {
+            " and the case study"
+        } else {
+            ""
+        }
+    );
+    let mut rows = execute(&p, jobs, o.resume);
+    let grid_s = wall.elapsed().as_secs_f64();
+    let frames_dir = prepared_dir(&p.out);
+    if let Err(e) = std::fs::remove_dir_all(&frames_dir) {
+        tracing::warn!("cannot remove {}: {e}", frames_dir.display());
+    }
     let stopped = crate::interrupt::stop_requested();
+    let mut report = report(&p, &mut rows)?;
     if stopped {
         let unfinished = rows.iter().filter(|r| r.error.is_some()).count();
         let _ = writeln!(
-            md,
+            report.md,
             "\n**Stopped by the user:** {unfinished} of {} runs not finished; the same command with `--resume` runs only those.",
             rows.len()
         );
     }
     let _ = writeln!(
-        md,
-        "\n{} runs in {grid_s:.1} s wall clock, {jobs} at a time on {} cores{}.",
-        rows.len(),
+        report.md,
+        "\n{} jobs in {grid_s:.1} s wall clock, {jobs} at a time on {} cores.",
+        p.plan.jobs.len(),
         std::thread::available_parallelism().map_or(1, |n| n.get()),
-        if cs.is_some() {
-            ", the case study alongside"
-        } else {
-            ""
-        }
     );
-    write_outputs(&out, &rows, &md)?;
-
-    if let Some(cs) = cs.filter(|_| !stopped) {
-        let (_, cs_md) = cs?;
+    let mut md = report.md;
+    if let Some(cs_md) = report.case_study_md {
         let _ = writeln!(md, "\n{cs_md}");
+    }
+    write_outputs(&p.out, &rows, &md)?;
+    Ok((rows, md))
+}
+
+/// What `--collect` found.
+pub struct Collected {
+    pub rows: Vec<Row>,
+    pub md: String,
+    /// The plan's lines not finished, with why.
+    pub unfinished: Vec<(usize, String)>,
+}
+
+/// `--collect DIR`: the reports of a plan whose lines ran elsewhere (a job array, other
+/// machines), from the run folders alone. Lines not finished are rows with their error,
+/// listed in the report and in DIR/unfinished.txt; once every line finished, the prepared
+/// inputs are deleted.
+pub fn collect(dir: &Path) -> Result<Collected> {
+    let out = absolute(dir);
+    let plan = Plan::read(&out)?;
+    let (seqs, mut queue) = grid_jobs(&plan.options, &out)?;
+    // The plan on disk must be the grid its options make: each run line is the row's
+    // command plus, at most, the prepared inputs.
+    let runs: Vec<&PlannedJob> = plan
+        .jobs
+        .iter()
+        .filter(|j| j.kind == JobKind::Run)
+        .collect();
+    let json = out.join(super::plan::JOBS_JSON);
+    if runs.len() != queue.len() {
+        return Err(Error::file(
+            &json,
+            format!(
+                "{} runs planned, but its options make a grid of {} now: plan again",
+                runs.len(),
+                queue.len()
+            ),
+        ));
+    }
+    for (job, planned) in queue.iter_mut().zip(&runs) {
+        let rest = planned.argv.strip_prefix(job.argv.as_slice());
+        let mut prepared = rest.unwrap_or_default().chunks(2);
+        let ok = rest.is_some()
+            && prepared.all(|kv| match kv {
+                [k, v] if k == "--decoded-frames" => {
+                    job.decoded = Some(v.into());
+                    true
+                }
+                [k, v] if k == "--features" => {
+                    job.features = Some(v.into());
+                    true
+                }
+                _ => false,
+            });
+        if !ok || job.line() != planned.argv {
+            return Err(Error::file(
+                &json,
+                format!(
+                    "line {} is not the run its options make now ({}): plan again",
+                    planned.line,
+                    job.dir.display()
+                ),
+            ));
+        }
+    }
+    let p = Planned {
+        options: plan.options.clone(),
+        out: out.clone(),
+        seqs,
+        queue,
+        plan,
+    };
+    let mut rows: Vec<Row> = p.queue.iter().map(collected_row).collect();
+    let report = report(&p, &mut rows)?;
+    let total: f64 = rows.iter().map(|r| r.wall_s).sum();
+    let mut md = report.md;
+    let _ = writeln!(
+        md,
+        "\n{} jobs collected from {}; the runs took {total:.1} s in all.",
+        p.plan.jobs.len(),
+        out.display()
+    );
+    if let Some(cs_md) = report.case_study_md {
+        let _ = writeln!(md, "\n{cs_md}");
+    }
+    write_outputs(&out, &rows, &md)?;
+    let mut txt = String::new();
+    for (line, why) in &report.unfinished {
+        let _ = writeln!(txt, "{line}\t{why}");
+    }
+    crate::io::atomic_write(&out.join(super::plan::UNFINISHED_TXT), txt.as_bytes())?;
+    if report.unfinished.is_empty() {
+        let frames_dir = prepared_dir(&out);
+        if frames_dir.exists()
+            && let Err(e) = std::fs::remove_dir_all(&frames_dir)
+        {
+            tracing::warn!("cannot remove {}: {e}", frames_dir.display());
+        }
+    }
+    Ok(Collected {
+        rows,
+        md,
+        unfinished: report.unfinished,
+    })
+}
+
+/// The reports of a plan's rows: the place probe, the tables and verdicts, the lines not
+/// finished, and the case study's table when the plan has one.
+struct Report {
+    md: String,
+    case_study_md: Option<String>,
+    unfinished: Vec<(usize, String)>,
+}
+
+fn report(p: &Planned, rows: &mut [Row]) -> Result<Report> {
+    attach_seen_again(rows, &p.seqs, &p.options);
+    let mut md = markdown(
+        &p.seqs,
+        rows,
+        &p.options.controllers,
+        p.options.mono,
+        p.options.drop_shift,
+    );
+    let mut unfinished: Vec<(usize, String)> = Vec::new();
+    let run_lines = p.plan.jobs.iter().filter(|j| j.kind == JobKind::Run);
+    for (r, j) in rows.iter().zip(run_lines) {
+        if let Some(e) = &r.error {
+            unfinished.push((j.line, e.clone()));
+        }
+    }
+    let case_study_md = match &p.options.case_study {
+        Some(data) => {
+            let cs_out = p.out.join(CASE_STUDY_DIR);
+            let (cs, cs_md) =
+                case_study::case_study(data, &cs_out, &case_study_options(&p.options, true))?;
+            for j in p.plan.jobs.iter().filter(|j| j.kind == JobKind::CaseStudy) {
+                if !cs
+                    .controllers
+                    .iter()
+                    .any(|c| c.controller == j.controller.as_str())
+                {
+                    unfinished.push((
+                        j.line,
+                        format!("case study {}: not finished", j.controller.as_str()),
+                    ));
+                }
+            }
+            Some(cs_md)
+        }
+        None => None,
+    };
+    unfinished.sort();
+    if !unfinished.is_empty() {
+        let lines: Vec<usize> = unfinished.iter().map(|u| u.0).collect();
         let _ = writeln!(
             md,
-            "\nBenchmark and case study: {:.1} s wall clock.",
-            wall.elapsed().as_secs_f64()
+            "\n**Not finished:** {} of {} jobs (lines {} of jobs.txt): their rows show the error. Run those lines again (`sbatch --array={}` with the plan's job script), then collect.",
+            unfinished.len(),
+            p.plan.jobs.len(),
+            super::plan::array_spec(&lines),
+            super::plan::array_spec(&lines),
         );
-        write_outputs(&out, &rows, &md)?;
     }
-    Ok((rows, md))
+    Ok(Report {
+        md,
+        case_study_md,
+        unfinished,
+    })
 }
 
 struct SeqInfo {
@@ -693,15 +1003,78 @@ fn write_outputs(out: &Path, rows: &[Row], md: &str) -> Result<()> {
     super::robustness_plot::plot_coverage(&out.join("robustness.png"), &cov).map(|_| ())
 }
 
-/// Runs the jobs `jobs` at a time; rows come back in job order whatever order they finish in.
-fn run_parallel(queue: &[Job], jobs: usize, resume: bool) -> Vec<Row> {
+/// The local executor: every line of the plan, `jobs` at a time, each a child process (the
+/// same command a job array runs); returns the grid's rows in table order, whatever order the
+/// lines finish in.
+fn execute(p: &Planned, jobs: usize, resume: bool) -> Vec<Row> {
     let done = AtomicUsize::new(0);
-    super::parallel_map(queue, jobs, |job| {
-        let row = run_job(job, resume);
+    let total = p.plan.jobs.len();
+    let n_case = total - p.queue.len();
+    let results = super::parallel_map(&p.plan.jobs, jobs, |planned| {
+        let (row, line) = match planned.kind {
+            JobKind::Run => {
+                let row = run_job(&p.queue[planned.line - 1 - n_case], resume);
+                let line = progress_line(&row);
+                (Some(row), line)
+            }
+            JobKind::CaseStudy => (None, run_case_study_job(p, planned, resume)),
+        };
         let n = done.fetch_add(1, Ordering::SeqCst) + 1;
-        println!("[{n}/{}] {}", queue.len(), progress_line(&row));
+        println!("[{n}/{total}] {line}");
         row
-    })
+    });
+    results.into_iter().flatten().collect()
+}
+
+/// Runs one case-study line (unless `resume` finds its controller finished with the same
+/// data and config); its progress line.
+fn run_case_study_job(p: &Planned, job: &PlannedJob, resume: bool) -> String {
+    let name = format!("case study {}", job.controller.as_str());
+    let data = p.options.case_study.as_deref().unwrap_or(Path::new(""));
+    let cs_out = p.out.join(CASE_STUDY_DIR);
+    let opts = case_study::Options {
+        controllers: vec![job.controller],
+        ..case_study_options(&p.options, true)
+    };
+    let finished = || {
+        case_study::finished(job.controller, data, &cs_out, &opts).map_or_else(
+            || format!("{name}: not finished"),
+            |r| {
+                format!(
+                    "{name}: {}/{} steps, {} maps, {} wrong closures",
+                    r.steps_matched, r.steps_total, r.maps, r.closures_accepted_wrong
+                )
+            },
+        )
+    };
+    if resume && case_study::finished(job.controller, data, &cs_out, &opts).is_some() {
+        return finished();
+    }
+    if crate::interrupt::stop_requested() {
+        return format!("{name}: {STOPPED}");
+    }
+    match run_line(&job.argv, &job.out) {
+        Ok(o) if !o.status.success() => format!("{name}: {}", o.status),
+        Ok(_) => finished(),
+        Err(e) => format!("{name}: {e}"),
+    }
+}
+
+/// Runs a plan's line as a child process and keeps its output in `dir`/bench.log.
+fn run_line(argv: &[String], dir: &Path) -> Result<std::process::Output> {
+    let output = std::process::Command::new(&argv[0])
+        .args(&argv[1..])
+        .output()
+        .map_err(|e| Error::invalid(format!("cannot start {}: {e}", argv[0])))?;
+    if std::fs::create_dir_all(dir).is_ok() {
+        let mut log = String::from_utf8_lossy(&output.stdout).into_owned();
+        log.push_str(&String::from_utf8_lossy(&output.stderr));
+        // The log is a convenience; a failure to write it must not hide the run's result.
+        if let Err(e) = crate::io::atomic_write(&dir.join("bench.log"), log.as_bytes()) {
+            tracing::warn!("{e}");
+        }
+    }
+    Ok(output)
 }
 
 fn progress_line(r: &Row) -> String {
@@ -724,10 +1097,9 @@ fn progress_line(r: &Row) -> String {
     )
 }
 
-/// Runs one `homing run` child and reads its outputs into a row. Never fails: a run that
-/// crashed or could not start is a row with its error.
-fn run_job(job: &Job, resume: bool) -> Row {
-    let mut row = Row {
+/// A row with nothing read yet.
+fn empty_row(job: &Job) -> Row {
+    Row {
         sequence: job.sequence.clone(),
         perturbation: job.perturbation.name.clone(),
         controller: job.controller.as_str().into(),
@@ -745,31 +1117,36 @@ fn run_job(job: &Job, resume: bool) -> Row {
         final_state: "not run".into(),
         wall_s: 0.0,
         fps: 0.0,
-        command: job
-            .argv
-            .iter()
-            .map(|a| shell_quote(a))
-            .collect::<Vec<_>>()
-            .join(" "),
+        command: shell_line(&job.argv),
         error: None,
         group: Some(job.perturbation.group),
-    };
-    // A run finished by an earlier benchmark with the same command (see `DONE_MARK`).
-    let mark = job.dir.join(DONE_MARK);
-    let argv_text = job.argv.join("\n");
-    let done = std::fs::read_to_string(&mark).ok();
-    if resume
-        && let Some((wall, cmd)) = done.as_deref().and_then(|d| d.split_once('\n'))
-        && cmd == argv_text
-        && let Ok(wall) = wall.parse::<f64>()
-    {
-        let mut reused = row.clone();
-        reused.wall_s = wall;
-        if read_run(&job.dir, &mut reused).is_ok() {
+    }
+}
+
+/// The row of a job from what its run left in its folder (whoever ran it); a run not
+/// finished is a row with why.
+fn collected_row(job: &Job) -> Row {
+    let mut row = empty_row(job);
+    if !job.dir.join("summary.json").is_file() {
+        row.error = Some(format!("not run: no summary.json in {}", job.dir.display()));
+    } else if let Err(e) = read_run(&job.dir, &job.line(), &mut row) {
+        row.error.get_or_insert_with(|| e.to_string());
+    }
+    row
+}
+
+/// Runs one `homing run` child and reads its outputs into a row. Never fails: a run that
+/// crashed or could not start is a row with its error.
+fn run_job(job: &Job, resume: bool) -> Row {
+    // A run finished by an earlier benchmark with the same command.
+    if resume {
+        let row = collected_row(job);
+        if row.error.is_none() {
             tracing::info!("resumed: {} is finished", job.dir.display());
-            return reused;
+            return row;
         }
     }
+    let mut row = empty_row(job);
     // A user stop (SIGINT/SIGTERM): the runs not started are reported, not run.
     if crate::interrupt::stop_requested() {
         row.error = Some(STOPPED.into());
@@ -782,35 +1159,16 @@ fn run_job(job: &Job, resume: bool) -> Row {
         row.error = Some(format!("cannot clear {}: {e}", job.dir.display()));
         return row;
     }
-    let start = Instant::now();
-    let mut command = std::process::Command::new(&job.argv[0]);
-    command.args(&job.argv[1..]);
-    if let Some(d) = &job.decoded {
-        command.arg("--decoded-frames").arg(d);
-    }
-    if let Some(f) = &job.features {
-        command.arg("--features").arg(f);
-    }
-    let output = command.output();
-    row.wall_s = start.elapsed().as_secs_f64();
-    let measured = row.wall_s;
-    let output = match output {
+    let output = match run_line(&job.line(), &job.dir) {
         Ok(o) => o,
         Err(e) => {
-            row.error = Some(format!("cannot start {}: {e}", job.argv[0]));
+            row.error = Some(e.to_string());
             return row;
         }
     };
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    if std::fs::create_dir_all(&job.dir).is_ok() {
-        let mut log = String::from_utf8_lossy(&output.stdout).into_owned();
-        log.push_str(&stderr);
-        // The log is a convenience; a failure to write it must not hide the run's result.
-        if let Err(e) = crate::io::atomic_write(&job.dir.join("bench.log"), log.as_bytes()) {
-            tracing::warn!("{e}");
-        }
-    }
+    let mut row = collected_row(job);
     if !output.status.success() {
+        let stderr = String::from_utf8_lossy(&output.stderr);
         let line = stderr
             .lines()
             .rev()
@@ -820,30 +1178,31 @@ fn run_job(job: &Job, resume: bool) -> Row {
         row.error = Some(format!("{}: {line}", output.status));
         row.final_state = "error".into();
     }
-    if let Err(e) = read_run(&job.dir, &mut row) {
-        row.error.get_or_insert_with(|| e.to_string());
-    }
-    if row.error.is_none()
-        && let Err(e) =
-            crate::io::atomic_write(&mark, format!("{measured}\n{argv_text}").as_bytes())
-    {
-        tracing::warn!("{e}");
-    }
     row
 }
 
-/// Written into a run's folder once it finished (its wall time as the benchmark measured it,
-/// then its command, one argument a line): what `--resume` reuses. A run a user stop interrupted exits with an error and gets none.
-const DONE_MARK: &str = "bench-done.txt";
 /// The error of a run a user stop kept from starting.
 const STOPPED: &str = "stopped by the user before it started";
 
-/// Fills `row` from a run's summary.json and states.csv.
-fn read_run(dir: &Path, row: &mut Row) -> Result<()> {
+/// Fills `row` from a run's summary.json and states.csv, when they are the outputs of the
+/// plan's `line` (a folder left by another command is not this row's run).
+fn read_run(dir: &Path, line: &[String], row: &mut Row) -> Result<()> {
     let path = dir.join("summary.json");
     let text = crate::error::read_text(&path)?;
     let s: serde_json::Value =
         serde_json::from_str(&text).map_err(|e| Error::parse(&path, e.line(), e.to_string()))?;
+    let command: Option<Vec<String>> = s
+        .pointer("/command")
+        .and_then(|v| serde_json::from_value(v.clone()).ok());
+    if command.as_deref() != Some(line) {
+        return Err(Error::file(
+            &path,
+            "is the summary of another command than the plan's line: a stale run",
+        ));
+    }
+    if s.pointer("/user_stop").is_some() {
+        row.error = Some("stopped by the user during the run".into());
+    }
     let f = |p: &str| s.pointer(p).and_then(|v| v.as_f64());
     let u = |p: &str| s.pointer(p).and_then(|v| v.as_u64());
     row.ate_m = f("/evaluation/largest_map/ate_rmse_m");
@@ -858,9 +1217,9 @@ fn read_run(dir: &Path, row: &mut Row) -> Result<()> {
     if let Some(st) = s.pointer("/final_state").and_then(|v| v.as_str()) {
         row.final_state = st.to_string();
     }
-    // Frames taken from `--features` were extracted once for every run: each run counts
-    // that extraction time as its own.
-    row.wall_s += f("/extraction_reused_s").unwrap_or(0.0);
+    // The run's own wall time (whoever ran it); frames taken from `--features` were
+    // extracted once for every run, and each run counts that extraction time as its own.
+    row.wall_s = f("/wall_time_s").unwrap_or(0.0);
     let frames = u("/frames").unwrap_or(0) as f64;
     row.fps = if row.wall_s > 0.0 {
         frames / row.wall_s
@@ -1292,7 +1651,7 @@ pub fn in_view_latency(r: &Row) -> Vec<Option<usize>> {
 /// The probe of [`super::overlap::seen_again`] for every kidnapping and dark event of the
 /// rows, once per sequence; fills `Row::seen_again`. A sequence it cannot probe (no ground
 /// truth or depth) is logged and left unmeasured.
-fn attach_seen_again(rows: &mut [Row], seqs: &[SeqInfo], o: &Options) {
+fn attach_seen_again(rows: &mut [Row], seqs: &[SeqInfo], o: &PlanOptions) {
     for (i, s) in seqs.iter().enumerate() {
         let judged =
             |r: &Row| r.sequence == s.name && matches!(r.group, Some(Group::Kidnap | Group::Dark));
@@ -1623,6 +1982,7 @@ mod tests {
     fn csv_quotes_only_when_needed() {
         assert_eq!(csv_field("a b"), "a b");
         assert_eq!(csv_field("a,b"), "\"a,b\"");
+        use crate::bench::plan::shell_quote;
         assert_eq!(shell_quote("/x/y-z.1"), "/x/y-z.1");
         assert_eq!(shell_quote("a b"), "'a b'");
     }

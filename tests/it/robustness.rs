@@ -345,3 +345,111 @@ fn a_tracking_benchmark_resumes_only_the_runs_not_finished() {
         );
     }
 }
+
+/// The benchmark as a plan (issue #52): `--plan-only` writes one command a line, two separate
+/// shell processes each run half of the lines (as two job-array tasks would), and `--collect`
+/// gives the robustness.csv of the single-process benchmark, row for row (the run times
+/// aside, and the output folder in the recorded commands). Before the second half has run,
+/// `--collect` fails and names the lines not finished, in a list `sbatch --array` takes.
+#[test]
+fn a_plan_run_by_two_processes_collects_the_single_process_rows() {
+    let tmp = tempfile::tempdir().unwrap();
+    let seq = tmp.path().join("desk");
+    generate_desk(&seq, 72);
+    let grid = |out: &Path| {
+        vec![
+            "bench".to_string(),
+            "robustness".into(),
+            "--sequence".into(),
+            seq.display().to_string(),
+            "--quick".into(),
+            "--controller".into(),
+            "ours".into(),
+            "--controller".into(),
+            "proslam".into(),
+            "--jobs".into(),
+            "2".into(),
+            "--out".into(),
+            out.display().to_string(),
+        ]
+    };
+    let run =
+        |args: &[String]| common::homing(&args.iter().map(String::as_str).collect::<Vec<_>>());
+
+    let single = tmp.path().join("single");
+    let (ok, _, stderr) = run(&grid(&single));
+    assert!(ok, "{stderr}");
+
+    let plan = tmp.path().join("plan");
+    let mut args = grid(&plan);
+    args.push("--plan-only".into());
+    let (ok, stdout, stderr) = run(&args);
+    assert!(ok, "{stderr}");
+    assert!(stdout.contains("4 jobs"), "{stdout}");
+    assert!(
+        !plan.join("robustness.csv").exists(),
+        "--plan-only ran something"
+    );
+    let jobs = std::fs::read_to_string(plan.join("jobs.txt")).unwrap();
+    let lines: Vec<&str> = jobs.lines().collect();
+    assert_eq!(lines.len(), 4, "{jobs}");
+    assert!(
+        lines.iter().all(|l| l.contains(" run --sequence ")),
+        "{jobs}"
+    );
+    let half = |part: &[&str]| {
+        let script = part.join("\n");
+        let status = std::process::Command::new("bash")
+            .args(["-c", &script])
+            .env("RUST_LOG", "warn")
+            .stdout(std::process::Stdio::null())
+            .status()
+            .unwrap();
+        assert!(status.success(), "{script}");
+    };
+    half(&lines[..2]);
+    let collect = ["bench", "robustness", "--collect", plan.to_str().unwrap()];
+    let (ok, _, stderr) = common::homing(&collect);
+    assert!(!ok, "collected with half of the lines not run");
+    assert!(stderr.contains("--array=3-4"), "{stderr}");
+    let unfinished = std::fs::read_to_string(plan.join("unfinished.txt")).unwrap();
+    assert_eq!(
+        unfinished.lines().map(|l| &l[..2]).collect::<Vec<_>>(),
+        ["3\t", "4\t"],
+        "{unfinished}"
+    );
+    half(&lines[2..]);
+    let (ok, _, stderr) = common::homing(&collect);
+    assert!(ok, "{stderr}");
+    assert_eq!(
+        std::fs::read_to_string(plan.join("unfinished.txt")).unwrap(),
+        ""
+    );
+    assert!(
+        !plan.join("decoded-frames").exists(),
+        "prepared inputs kept after every line finished"
+    );
+
+    // Row for row, but for the run times and the output folder in the commands.
+    let rows = |out: &Path| {
+        let csv = std::fs::read_to_string(out.join("robustness.csv")).unwrap();
+        let mut lines = csv.lines();
+        let header = csv_split(lines.next().unwrap());
+        let timing: Vec<usize> = ["wall_s", "fps"]
+            .iter()
+            .map(|c| header.iter().position(|h| h == c).unwrap())
+            .collect();
+        lines
+            .map(|l| {
+                let mut r = csv_split(&l.replace(out.to_str().unwrap(), "OUT"));
+                for &i in &timing {
+                    r[i].clear();
+                }
+                r
+            })
+            .collect::<Vec<_>>()
+    };
+    let (a, b) = (rows(&single), rows(&plan));
+    assert_eq!(a.len(), 4);
+    assert_eq!(a, b);
+}
