@@ -230,8 +230,8 @@ enum BenchCmd {
         /// Config file (TOML) for every run.
         #[arg(long)]
         config: Option<PathBuf>,
-        /// Also run this generated case study (as `homing bench case-study --data DIR`) and
-        /// append its Table II to the report.
+        /// Also run this case study (as `homing bench case-study --data DIR`, generated into
+        /// DIR first if it is not there) and append its Table II to the report.
         #[arg(long, value_name = "DIR")]
         case_study: Option<PathBuf>,
         /// Reuse the runs that a stopped (Ctrl-C) or earlier benchmark with the same commands

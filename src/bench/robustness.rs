@@ -691,13 +691,18 @@ fn case_study_options(p: &PlanOptions, collect_only: bool) -> case_study::Option
 fn make_plan(p: &PlanOptions, out: &Path, queue: &[Job]) -> Plan {
     let mut jobs = case_study_jobs(p, out);
     for j in queue {
-        let mut needs = vec![p.sequences[0].clone()];
-        if let Some(i) = j.argv.iter().position(|a| a == "--sequence") {
-            needs = vec![PathBuf::from(&j.argv[i + 1])];
-        }
-        needs.extend(p.config.iter().cloned());
-        needs.extend(j.decoded.iter().cloned());
-        needs.extend(j.features.iter().cloned());
+        let sequence = j
+            .argv
+            .iter()
+            .position(|a| a == "--sequence")
+            .and_then(|i| j.argv.get(i + 1))
+            .map(PathBuf::from);
+        let needs = sequence
+            .into_iter()
+            .chain(p.config.iter().cloned())
+            .chain(j.decoded.iter().cloned())
+            .chain(j.features.iter().cloned())
+            .collect();
         jobs.push(PlannedJob {
             line: 0,
             kind: JobKind::Run,
@@ -733,6 +738,13 @@ fn plan_in(o: &Options, jobs: usize) -> Result<Planned> {
     let options = plan_options(o)?;
     let out = absolute(&o.out);
     std::fs::create_dir_all(&out).map_err(|e| Error::file(&out, format!("cannot create: {e}")))?;
+    // A case study not generated yet is generated once, into the folder given, as
+    // `homing bench case-study` does: every line then reads it.
+    if let Some(data) = &options.case_study
+        && !data.join("session2").join("scenario.json").is_file()
+    {
+        case_study::generate(data, false)?;
+    }
     let (seqs, mut queue) = grid_jobs(&options, &out)?;
     prepare_inputs(&mut queue, &seqs, &options, &out, jobs);
     let plan = make_plan(&options, &out, &queue);

@@ -41,6 +41,28 @@ fn generate_desk(dir: &Path, frames: usize) {
     );
 }
 
+/// `homing bench robustness` on `seq`'s quick grid (none and one kidnapping) under ours and
+/// ProSLAM's controller: four runs, `jobs` at a time, into `out`.
+fn quick_grid_args(seq: &Path, jobs: usize, out: &Path) -> Vec<String> {
+    [
+        "bench",
+        "robustness",
+        "--sequence",
+        &seq.display().to_string(),
+        "--quick",
+        "--controller",
+        "ours",
+        "--controller",
+        "proslam",
+        "--jobs",
+        &jobs.to_string(),
+        "--out",
+        &out.display().to_string(),
+    ]
+    .map(String::from)
+    .to_vec()
+}
+
 #[test]
 fn quick_grid_rows_commands_and_reproduction() {
     let tmp = tempfile::tempdir().unwrap();
@@ -221,21 +243,7 @@ fn a_stopped_benchmark_keeps_its_finished_rows_and_resumes() {
     generate_desk(&seq, 72);
     let out = tmp.path().join("bench");
     let args = |resume: bool| {
-        let mut a = vec![
-            "bench".to_string(),
-            "robustness".into(),
-            "--sequence".into(),
-            seq.display().to_string(),
-            "--quick".into(),
-            "--controller".into(),
-            "ours".into(),
-            "--controller".into(),
-            "proslam".into(),
-            "--jobs".into(),
-            "1".into(),
-            "--out".into(),
-            out.display().to_string(),
-        ];
+        let mut a = quick_grid_args(&seq, 1, &out);
         if resume {
             a.push("--resume".into());
         }
@@ -356,23 +364,7 @@ fn a_plan_run_by_two_processes_collects_the_single_process_rows() {
     let tmp = tempfile::tempdir().unwrap();
     let seq = tmp.path().join("desk");
     generate_desk(&seq, 72);
-    let grid = |out: &Path| {
-        vec![
-            "bench".to_string(),
-            "robustness".into(),
-            "--sequence".into(),
-            seq.display().to_string(),
-            "--quick".into(),
-            "--controller".into(),
-            "ours".into(),
-            "--controller".into(),
-            "proslam".into(),
-            "--jobs".into(),
-            "2".into(),
-            "--out".into(),
-            out.display().to_string(),
-        ]
-    };
+    let grid = |out: &Path| quick_grid_args(&seq, 2, out);
     let run =
         |args: &[String]| common::homing(&args.iter().map(String::as_str).collect::<Vec<_>>());
 
