@@ -70,21 +70,8 @@ fn quick_grid_rows_commands_and_reproduction() {
     // 72 frames at 15 Hz: 4.7 s, long enough for a 1 s kidnapping with 1 s tracked around it.
     generate_desk(&seq, 72);
     let out = tmp.path().join("bench");
-    let (ok, stdout, stderr) = common::homing(&[
-        "bench",
-        "robustness",
-        "--sequence",
-        seq.to_str().unwrap(),
-        "--quick",
-        "--controller",
-        "ours",
-        "--controller",
-        "proslam",
-        "--jobs",
-        "2",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let args = quick_grid_args(&seq, 2, &out);
+    let (ok, stdout, stderr) = common::homing(&args.iter().map(String::as_str).collect::<Vec<_>>());
     assert!(ok, "bench failed: {stderr}");
     assert!(!stderr.contains("panicked"), "{stderr}");
     // A progress line per run, then the Markdown table.
