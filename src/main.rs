@@ -148,6 +148,9 @@ enum BenchCmd {
         /// sequence and config finished in OUT; only the other runs.
         #[arg(long)]
         resume: bool,
+        /// Suppress depth (monocular), as `homing run --mono`; ATE is Sim3-aligned.
+        #[arg(long)]
+        mono: bool,
     },
     /// The paper's case study (Table II): generate both sessions, run every controller,
     /// write OUT/case_study.md (side by side) and OUT/case_study.json.
@@ -479,12 +482,13 @@ fn main() {
             config,
             out,
             resume,
+            mono,
         }) => {
             // Ctrl-C: the run under way stops (writing its outputs), the other does not start.
             if let Err(e) = homing::interrupt::install() {
                 tracing::warn!("{e}: Ctrl-C will kill the benchmark");
             }
-            homing::bench::tracking(&sequence, config.as_deref(), &out, resume)
+            homing::bench::tracking(&sequence, config.as_deref(), mono, &out, resume)
                 .map(|md| print!("{md}"))
                 .map_err(Into::into)
         }

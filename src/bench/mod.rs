@@ -21,12 +21,12 @@ use std::path::{Path, PathBuf};
 /// depended on ([`tracking_identity`]), which `--resume` compares.
 const TRACKING_DONE_MARK: &str = "bench-done.txt";
 
-/// What a tracking run depends on besides its mode: the binary's version, the sequence and
-/// the config's text.
-fn tracking_identity(sequence: &Path, config: Option<&Path>) -> String {
+/// What a tracking run depends on besides its mode: the binary's version, the sequence,
+/// whether depth is suppressed and the config's text.
+fn tracking_identity(sequence: &Path, config: Option<&Path>, mono: bool) -> String {
     let config = config_text(config);
     format!(
-        "homing {}\nsequence {}\nconfig\n{config}",
+        "homing {}\nsequence {}\nmono {mono}\nconfig\n{config}",
         env!("CARGO_PKG_VERSION"),
         sequence.display()
     )
@@ -92,11 +92,12 @@ const STAGES: &[(&str, &str)] = &[
     ("frame", "whole step on the tracking thread"),
 ];
 
-/// Runs `sequence` deterministic and threaded, writes OUT/{deterministic,threaded}/ and
-/// returns a Markdown report.
+/// Runs `sequence` deterministic and threaded (with depth suppressed when `mono`), writes
+/// OUT/{deterministic,threaded}/ and returns a Markdown report.
 pub fn tracking(
     sequence: &Path,
     config: Option<&Path>,
+    mono: bool,
     out: &Path,
     resume: bool,
 ) -> Result<String> {
@@ -106,7 +107,7 @@ pub fn tracking(
     for (mode, threaded) in [("deterministic", false), ("threaded", true)] {
         let dir = out.join(mode);
         let mark = dir.join(TRACKING_DONE_MARK);
-        let id = tracking_identity(sequence, config);
+        let id = tracking_identity(sequence, config, mono);
         if resume
             && std::fs::read_to_string(&mark).is_ok_and(|m| m == id)
             && let Ok(text) = std::fs::read_to_string(dir.join("summary.json"))
@@ -124,6 +125,10 @@ pub fn tracking(
             sequence: sequence.to_path_buf(),
             out: dir.clone(),
             config: config.map(PathBuf::from),
+            perturb: crate::io::perturb::PerturbationSpec {
+                mono,
+                ..Default::default()
+            },
             eval: true,
             command: std::env::args().collect(),
             threaded,
@@ -141,7 +146,12 @@ pub fn tracking(
         runs.push((mode, value));
     }
     let mut md = String::new();
-    let _ = writeln!(md, "# homing bench tracking: {}\n", sequence.display());
+    let _ = writeln!(
+        md,
+        "# homing bench tracking: {}{}\n",
+        sequence.display(),
+        if mono { " (monocular)" } else { "" }
+    );
     let _ = writeln!(
         md,
         "Per-stage time per call, median / p90 (ms); cores: {}.\n",

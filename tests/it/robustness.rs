@@ -283,8 +283,8 @@ fn a_stopped_benchmark_keeps_its_finished_rows_and_resumes() {
 }
 
 /// `homing bench tracking --resume` reuses a mode's run that a finished (or stopped) benchmark
-/// with the same sequence and config ran, and runs only the others; another config runs both
-/// again.
+/// with the same sequence and config ran, and runs only the others; another config, or
+/// `--mono`, runs both again.
 #[test]
 fn a_tracking_benchmark_resumes_only_the_runs_not_finished() {
     let tmp = tempfile::tempdir().unwrap();
@@ -337,6 +337,25 @@ fn a_tracking_benchmark_resumes_only_the_runs_not_finished() {
         assert!(
             mark.contains("# changed"),
             "{mode} was not run again: {mark}"
+        );
+    }
+    // Monocular (`--mono`): nothing RGB-D is reused, and the report says which it is.
+    let mut mono = args(true);
+    mono.push("--mono");
+    let (ok, stdout, stderr) = common::homing(&mono);
+    assert!(ok, "{stderr}");
+    assert!(stdout.contains("(monocular)"), "{stdout}");
+    for mode in ["deterministic", "threaded"] {
+        let mark = std::fs::read_to_string(out.join(mode).join("bench-done.txt")).unwrap();
+        assert!(
+            mark.contains("mono true"),
+            "{mode} was not run again: {mark}"
+        );
+        let run: serde_json::Value = serde_json::from_slice(&summary(mode).unwrap()).unwrap();
+        assert_eq!(
+            run.pointer("/perturbations/spec/mono"),
+            Some(&serde_json::Value::Bool(true)),
+            "{mode} ran with depth"
         );
     }
 }
