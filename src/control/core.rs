@@ -141,11 +141,17 @@ impl StateMachine {
             // The frame is that keyframe: it follows the keyframe's refined pose exactly.
             pose = (Isometry3::identity(), cur, kf);
         }
+        let mut expectation = None;
+        if self.mono {
+            let e = self.expectation(&self.atlas.maps[&cur], m, &track);
+            self.note_mapping_reobserved(&e);
+            expectation = Some(e);
+        }
         let lc = self.cfg.loop_closing.enabled;
         if recognize_known && lc && new_kf.is_none() && !self.flags.able_to_localize {
             // Only where the map covers the view: Localized would be left at once otherwise.
-            let map = &self.atlas.maps[&cur];
-            let e = self.expectation(map, m, &track);
+            let e =
+                expectation.unwrap_or_else(|| self.expectation(&self.atlas.maps[&cur], m, &track));
             if e.coverage() >= self.cfg.controller.min_recognize_coverage {
                 timing.time("recognize", || self.recognize_known(m, &track));
             }

@@ -12,6 +12,11 @@ use std::collections::BTreeSet;
 
 use super::actions::*;
 
+/// Mapped frames whose re-observed share the appearance check's floor is the median of: about
+/// 10 s at 30 Hz, recent enough to follow the light and the motion, long enough that one
+/// blurred sweep does not move it.
+const REOBSERVED_WINDOW: usize = 300;
+
 impl StateMachine {
     /// Localized's entry: the accepted pool becomes an atlas transaction — maps merged if it
     /// links two, closure edges added, global optimisation with its consistency check — and the
@@ -248,6 +253,28 @@ impl StateMachine {
         );
     }
 
+    /// Without depth, a mapped frame's re-observed share (see `appearance_floor`); frames
+    /// with too few predicted cells to judge are left out, as the check leaves them out.
+    pub(super) fn note_mapping_reobserved(&mut self, e: &global_optimizer::Expectation) {
+        if e.expected_cells < self.cfg.controller.min_expected_cells as usize {
+            return;
+        }
+        if self.mapping_reobserved.len() == REOBSERVED_WINDOW {
+            self.mapping_reobserved.pop_front();
+        }
+        self.mapping_reobserved.push_back(e.ratio());
+    }
+
+    /// The appearance check's floor (without depth), see [`appearance_floor`].
+    fn appearance_floor(&self) -> f64 {
+        let c = &self.cfg.controller;
+        appearance_floor(
+            c.min_expectation_ratio,
+            c.expectation_relative,
+            &self.mapping_reobserved,
+        )
+    }
+
     /// Localized: track in known space without new keyframes; check the map's expectation.
     pub(super) fn track_localized(&mut self, m: &Measurement, timing: &mut Timing) -> Option<Pose> {
         let cur = self.current?;
@@ -280,7 +307,7 @@ impl StateMachine {
         let failed = if by_depth {
             e.contradiction() > c.max_contradiction
         } else {
-            e.expected_cells >= c.min_expected_cells as usize && ratio < c.min_expectation_ratio
+            e.expected_cells >= c.min_expected_cells as usize && ratio < self.appearance_floor()
         };
         if failed {
             self.expectation_failures += 1;

@@ -124,6 +124,10 @@ pub struct StateMachine {
     /// Consecutive frames in Localized whose expectation failed, and whose view the map did
     /// not cover.
     expectation_failures: u32,
+    /// Without depth: the share of predicted cells re-observed on the last mapped frames
+    /// (at most `REOBSERVED_WINDOW`), the appearance check's reference (see
+    /// `appearance_floor`).
+    mapping_reobserved: std::collections::VecDeque<f64>,
     /// Most inliers of a frame since Localized was entered (see `track_localized`).
     localized_peak_inliers: usize,
     unknown_view_frames: u32,
@@ -215,6 +219,7 @@ impl StateMachine {
             founded: None,
             accepted: None,
             expectation_failures: 0,
+            mapping_reobserved: Default::default(),
             localized_peak_inliers: 0,
             unknown_view_frames: 0,
             suspects: Vec::new(),
