@@ -147,6 +147,16 @@ impl Map {
     /// Takes over every keyframe and point of `other` (already in this map's frame; ids are
     /// unique across the atlas).
     pub fn absorb(&mut self, other: Map) {
+        debug_assert!(
+            other
+                .keyframes
+                .keys()
+                .all(|k| !self.keyframes.contains_key(k))
+                && other.points.keys().all(|p| !self.points.contains_key(p)),
+            "absorbed map {} shares ids with map {}",
+            other.id,
+            self.id
+        );
         let (k, p) = other.next_ids();
         self.reserve_ids((k, p));
         self.keyframes.extend(other.keyframes);

@@ -142,6 +142,38 @@ impl Tracker {
         self.reference_kf = Some(reference_kf);
     }
 
+    /// The frame just tracked closed a loop in its own map: the map moved under the camera,
+    /// the camera did not. Its pose becomes `pose_cw`; the velocity (a camera-to-camera motion,
+    /// the same in any world frame) and the frame's own matches stay, the loop's matches
+    /// (`matches`, to the points around the matched keyframe) take precedence where both
+    /// matched a keypoint or a point: one keypoint per point, or the next frame's search would
+    /// match a point twice and a keyframe would keep a dangling reference once it is culled.
+    /// Resetting instead left the next frame to the matched keyframe's view alone: fr1_xyz300
+    /// mono with bag of words was lost the frame after a right loop.
+    pub fn closed_in_place(
+        &mut self,
+        pose_cw: Isometry3<f64>,
+        matches: &[Option<PointId>],
+        reference_kf: KfId,
+    ) {
+        self.last_pose = Some(pose_cw);
+        self.refused_in_a_row = 0;
+        self.twist = Vector6::zeros();
+        let closure = matches
+            .iter()
+            .enumerate()
+            .filter_map(|(i, m)| m.map(|p| (i, p)));
+        let mut by_keypoint: std::collections::BTreeMap<usize, PointId> = Default::default();
+        let mut points: std::collections::BTreeSet<PointId> = Default::default();
+        for (i, p) in closure.chain(self.last_matches.iter().copied()) {
+            if !by_keypoint.contains_key(&i) && points.insert(p) {
+                by_keypoint.insert(i, p);
+            }
+        }
+        self.last_matches = by_keypoint.into_iter().collect();
+        self.reference_kf = Some(reference_kf);
+    }
+
     /// A frame was not tracked. The last tracked frame and the motion model stay: within the
     /// controller's re-acquisition gap the next frame is predicted across the missing ones
     /// (a black or foreign frame between two good ones costs no more than that frame); after
@@ -636,4 +668,36 @@ pub fn reference_keyframe(map: &Map, matches: &[Option<PointId>]) -> Option<KfId
         .into_iter()
         .max_by(|a, b| a.1.cmp(&b.1).then(b.0.cmp(&a.0)))
         .map(|(k, _)| k)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::optim::Intrinsics;
+
+    /// After a loop closed in place, the frame's own matches stay beside the loop's, the
+    /// loop's win on a shared keypoint, and no point is matched by two keypoints (the next
+    /// search would match it twice).
+    #[test]
+    fn a_loop_closed_in_place_keeps_the_motion_and_one_keypoint_per_point() {
+        let geo = ImageGeometry::new(Intrinsics::TUM_FREIBURG1, 640, 480, 1.2, 8);
+        let mut t = Tracker::new(&TrackerConfig::default(), geo);
+        let v = Isometry3::translation(0.01, 0.0, 0.0);
+        t.velocity = Some(v);
+        t.last_matches = vec![(0, 10), (1, 11), (2, 12), (5, 15)];
+        // Keypoint 1 now sees old point 21; keypoint 3 sees point 12, which keypoint 2 saw.
+        let mut closure = vec![None; 6];
+        closure[1] = Some(21);
+        closure[3] = Some(12);
+        let pose = Isometry3::translation(1.0, 2.0, 3.0);
+        t.closed_in_place(pose, &closure, 7);
+        assert_eq!(t.last_matches, vec![(0, 10), (1, 21), (3, 12), (5, 15)]);
+        assert_eq!(t.velocity, Some(v));
+        assert_eq!(t.last_pose, Some(pose));
+        assert_eq!(t.reference_kf, Some(7));
+        // A reset forgets the motion.
+        t.reset(pose, 0.0, &closure, 7);
+        assert_eq!(t.velocity, None);
+        assert_eq!(t.last_matches, vec![(1, 21), (3, 12)]);
+    }
 }

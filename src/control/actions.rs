@@ -70,8 +70,13 @@ impl StateMachine {
         })
     }
 
-    /// Back to where the tracker was.
+    /// Back to where the tracker was. The map's id counters move past every id handed out
+    /// since: a map restored by a rollback has its old counters, and its next points would
+    /// take the ids of another map's points (fr1_xyz300 mono, 5 % foreign frames: after
+    /// pools 0-3 were undone, map 0's new points collided with map 1's, and merging the two
+    /// later left keyframes seeing overwritten points).
     pub(super) fn resume_tracking(&mut self, at: super::TrackingAt) {
+        self.atlas.activate(at.map);
         self.tracker = at.tracker;
         self.current = Some(at.map);
         self.last_tracked_t = at.last_tracked_t;

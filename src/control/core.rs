@@ -91,7 +91,6 @@ impl StateMachine {
                 m.frame,
                 r.map
             );
-            self.atlas.activate(r.map);
             self.resume_tracking(r);
         }
     }

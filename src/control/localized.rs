@@ -150,6 +150,11 @@ impl StateMachine {
             }),
             _ => None,
         };
+        // Without depth, a frame that closed a loop in its own map tracks on with its motion
+        // model (see `Tracker::closed_in_place`). RGB-D keeps the reset: its re-tracking from
+        // the matched keyframe uses depth and was not lost after a loop (fr1_desk with the
+        // preset: 15 closures), and its measured numbers stand as they are.
+        let in_place = self.mono && into == from && own.is_some() && last.frame == m.frame;
         let (pose, ref_kf) = match (own, last.query_kf.and_then(|k| map.keyframes.get(&k))) {
             (Some(o), _) => o,
             (None, Some(k)) => (k.pose_cw, k.id),
@@ -164,7 +169,11 @@ impl StateMachine {
         self.current = Some(into);
         self.atlas.activate(into);
         let matches = last.matches.clone();
-        self.tracker.reset(pose, m.t, &matches, ref_kf);
+        if in_place {
+            self.tracker.closed_in_place(pose, &matches, ref_kf);
+        } else {
+            self.tracker.reset(pose, m.t, &matches, ref_kf);
+        }
         if into == from {
             // The same map goes on: its recent points still await culling.
             self.merger.closed(m.frame);
