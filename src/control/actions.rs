@@ -217,6 +217,10 @@ pub(super) fn localized_inlier_floor(mono: bool, min_inliers: usize, peak: usize
     }
 }
 
+/// Mapped frames whose re-observed share the appearance check's floor is the median of: about
+/// 10 s at 30 Hz, recent enough to follow the light and the motion, long enough that one
+/// blurred sweep does not move it.
+pub(super) const REOBSERVED_WINDOW: usize = 300;
 /// Below this many mapped frames' shares, the appearance floor is the fixed one.
 pub(super) const MIN_REOBSERVED_SAMPLES: usize = 20;
 

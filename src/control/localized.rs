@@ -12,11 +12,6 @@ use std::collections::BTreeSet;
 
 use super::actions::*;
 
-/// Mapped frames whose re-observed share the appearance check's floor is the median of: about
-/// 10 s at 30 Hz, recent enough to follow the light and the motion, long enough that one
-/// blurred sweep does not move it.
-const REOBSERVED_WINDOW: usize = 300;
-
 impl StateMachine {
     /// Localized's entry: the accepted pool becomes an atlas transaction — maps merged if it
     /// links two, closure edges added, global optimisation with its consistency check — and the

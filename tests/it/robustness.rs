@@ -71,7 +71,7 @@ fn quick_grid_rows_commands_and_reproduction() {
     generate_desk(&seq, 72);
     let out = tmp.path().join("bench");
     let args = quick_grid_args(&seq, 2, &out);
-    let (ok, stdout, stderr) = common::homing(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    let (ok, stdout, stderr) = common::homing(&args);
     assert!(ok, "bench failed: {stderr}");
     assert!(!stderr.contains("panicked"), "{stderr}");
     // A progress line per run, then the Markdown table.
@@ -269,8 +269,7 @@ fn a_stopped_benchmark_keeps_its_finished_rows_and_resumes() {
     let md = std::fs::read_to_string(out.join("robustness.md")).unwrap();
     assert!(md.contains("Stopped by the user"), "{md}");
 
-    let (ok, stdout, stderr) =
-        common::homing(&args(true).iter().map(String::as_str).collect::<Vec<_>>());
+    let (ok, stdout, stderr) = common::homing(&args(true));
     assert!(ok, "{stderr}");
     assert!(!stdout.contains("stopped by the user"), "{stdout}");
     let second = rows(&std::fs::read_to_string(out.join("robustness.csv")).unwrap());
@@ -371,17 +370,15 @@ fn a_plan_run_by_two_processes_collects_the_single_process_rows() {
     let seq = tmp.path().join("desk");
     generate_desk(&seq, 72);
     let grid = |out: &Path| quick_grid_args(&seq, 2, out);
-    let run =
-        |args: &[String]| common::homing(&args.iter().map(String::as_str).collect::<Vec<_>>());
 
     let single = tmp.path().join("single");
-    let (ok, _, stderr) = run(&grid(&single));
+    let (ok, _, stderr) = common::homing(&grid(&single));
     assert!(ok, "{stderr}");
 
     let plan = tmp.path().join("plan");
     let mut args = grid(&plan);
     args.push("--plan-only".into());
-    let (ok, stdout, stderr) = run(&args);
+    let (ok, stdout, stderr) = common::homing(&args);
     assert!(ok, "{stderr}");
     assert!(stdout.contains("4 jobs"), "{stdout}");
     assert!(

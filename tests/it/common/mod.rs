@@ -62,7 +62,7 @@ pub fn tum_folder(root: &Path, name: &str, n: usize) -> PathBuf {
 }
 
 /// Runs the homing binary, returning (success, stdout, stderr).
-pub fn homing(args: &[&str]) -> (bool, String, String) {
+pub fn homing<S: AsRef<std::ffi::OsStr>>(args: &[S]) -> (bool, String, String) {
     let out = std::process::Command::new(env!("CARGO_BIN_EXE_homing"))
         .args(args)
         .env("RUST_LOG", "warn")
