@@ -145,11 +145,15 @@ impl StateMachine {
             }),
             _ => None,
         };
-        // Without depth, a frame that closed a loop in its own map tracks on with its motion
-        // model (see `Tracker::closed_in_place`). RGB-D keeps the reset: its re-tracking from
-        // the matched keyframe uses depth and was not lost after a loop (fr1_desk with the
-        // preset: 15 closures), and its measured numbers stand as they are.
-        let in_place = self.mono && into == from && own.is_some() && last.frame == m.frame;
+        // Without depth, a frame that closed a loop in its own map, or whose own map was just
+        // merged into the matched one (its points are part of the joined map now, its velocity
+        // rescaled by the merge), tracks on with its motion model (see
+        // `Tracker::closed_in_place`). RGB-D keeps the reset: its re-tracking from the matched
+        // keyframe uses depth and was not lost after a loop (fr1_desk with the preset: 15
+        // closures), and its measured numbers stand as they are.
+        let in_place = self.mono
+            && last.frame == m.frame
+            && ((into == from && own.is_some()) || (into != from && self.current == Some(from)));
         let (pose, ref_kf) = match (own, last.query_kf.and_then(|k| map.keyframes.get(&k))) {
             (Some(o), _) => o,
             (None, Some(k)) => (k.pose_cw, k.id),
@@ -161,11 +165,16 @@ impl StateMachine {
                 _ => (last.pose_in_match, last.matched),
             },
         };
+        let scale = if into == from {
+            1.0
+        } else {
+            acc.alignment.scale
+        };
         self.current = Some(into);
         self.atlas.activate(into);
         let matches = last.matches.clone();
         if in_place {
-            self.tracker.closed_in_place(pose, &matches, ref_kf);
+            self.tracker.closed_in_place(pose, &matches, ref_kf, scale);
         } else {
             self.tracker.reset(pose, m.t, &matches, ref_kf);
         }
