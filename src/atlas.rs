@@ -96,6 +96,9 @@ pub enum PoolKind {
         from: MapId,
         alignment: SimilarityRecord,
     },
+    /// A lost camera relocalized in the map it was lost in (monocular Idle, before a new map
+    /// was started): the map is unchanged, but what is mapped from then on rests on it.
+    Relocalization { map: MapId },
 }
 
 /// A [`Sim3`] in a serialisable form.
@@ -146,7 +149,7 @@ impl PoolRecord {
     /// Maps this pool touched.
     pub fn maps(&self) -> Vec<MapId> {
         match &self.kind {
-            PoolKind::Loop { map, .. } => vec![*map],
+            PoolKind::Loop { map, .. } | PoolKind::Relocalization { map } => vec![*map],
             PoolKind::Merge { into, from, .. } => vec![*into, *from],
         }
     }

@@ -469,6 +469,10 @@ pub struct ControllerConfig {
     /// room's door) passes the depth check and fails this one. 0 = off.
     pub min_merge_appearance: f64,
     pub min_merge_appearance_points: u32,
+    /// Without depth, Idle first relocalizes a lost camera in the map it was lost in, and
+    /// starts a new map only when that fails (see `relocalize_in_lost_map` in
+    /// `control/idle.rs`); false: every loss starts a new map, merged back in Sim3.
+    pub relocalize_lost_map: bool,
 }
 
 impl Default for ControllerConfig {
@@ -490,6 +494,7 @@ impl Default for ControllerConfig {
             reacquire_gap_s: 0.5,
             min_merge_appearance: 0.1,
             min_merge_appearance_points: 50,
+            relocalize_lost_map: true,
         }
     }
 }

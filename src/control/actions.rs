@@ -39,6 +39,10 @@ pub(super) const LOST_PLACE_KEYFRAMES: usize = 10;
 pub(super) const LOST_PLACE_RADIUS_M: f64 = 1.0;
 pub(super) const LOST_PLACE_WINDOW_S: f64 = 10.0;
 pub(super) const LOST_PLACE_MIN_INLIERS: usize = 150;
+/// How fast a hand-held camera moves between two frames relocalized in Idle (see
+/// `idle::idle_poses_agree`): TUM fr1_desk's fastest sweeps, rounded up.
+pub(super) const IDLE_POOL_SPEED_M_S: f64 = 1.0;
+pub(super) const IDLE_POOL_TURN_DEG_S: f64 = 90.0;
 /// A wrong loop across a merge's seam that moved its camera by more than these (m, degrees)
 /// was not made possible by the merge (see `recover`).
 pub(super) const LOCAL_LOOP_M: f64 = 1.0;

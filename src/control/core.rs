@@ -564,16 +564,27 @@ impl StateMachine {
         if lp.new_map != cur || m.t - lp.lost_t > LOST_PLACE_WINDOW_S {
             return Vec::new();
         }
-        let kfs: BTreeSet<KfId> = lp
-            .keyframes
+        self.lost_place_query(m, &lp.keyframes, |k| {
+            self.atlas.map_of_keyframe(k).is_some_and(|mm| mm != cur)
+        })
+    }
+
+    /// The lost place's keyframes `keyframes` (the one tracked last first) that `keep` keeps
+    /// and no rollback marked as look-alikes, as candidates for frame `m`: the one with the
+    /// most detector votes, or the one tracked last when none has any; with bag of words, the
+    /// one tracked last and the best-scored (see `lost_place_candidates`).
+    pub(super) fn lost_place_query(
+        &self,
+        m: &Measurement,
+        keyframes: &[KfId],
+        keep: impl Fn(KfId) -> bool,
+    ) -> Vec<loop_validator::Candidate> {
+        let kfs: BTreeSet<KfId> = keyframes
             .iter()
             .copied()
-            .filter(|k| {
-                !self.aliased.contains(k)
-                    && self.atlas.map_of_keyframe(*k).is_some_and(|mm| mm != cur)
-            })
+            .filter(|&k| !self.aliased.contains(&k) && keep(k))
             .collect();
-        let Some(&first) = lp.keyframes.iter().find(|k| kfs.contains(k)) else {
+        let Some(&first) = keyframes.iter().find(|k| kfs.contains(k)) else {
             return Vec::new();
         };
         let det = self

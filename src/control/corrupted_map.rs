@@ -313,6 +313,8 @@ impl StateMachine {
                     let s: Sim3 = correction.into();
                     self.loop_pool.refuse(*map, *map, s);
                 }
+                // No alignment to refuse: its matched keyframes become look-alikes below.
+                PoolKind::Relocalization { .. } => {}
             }
             self.mark_aliased(u.pool);
             // Frames tracked after the pool was applied are placed by it; the pool's own frame

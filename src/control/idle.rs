@@ -1,12 +1,14 @@
 //! Idle: tracking lost; a new map is started (or, for ORB-SLAM2's controller, only relocalization runs).
 
 use super::StateMachine;
-use crate::components::loop_validator::{self, Query, Verdict};
+use crate::components::loop_validator::{self, Accepted, Agreement, Query, Valid, Verdict};
 use crate::components::preprocess::Measurement;
-use crate::components::tracker::TrackMethod;
+use crate::components::tracker::{TrackMethod, TrackResult};
+use crate::geometry::Sim3;
 use crate::map::KfId;
 use crate::outputs::Timing;
 use nalgebra::Isometry3;
+use std::collections::BTreeSet;
 
 use super::actions::*;
 
@@ -39,6 +41,14 @@ impl StateMachine {
             }
             self.tracker.lose();
         }
+        if new_map
+            && same_map
+            && self.mono
+            && self.cfg.controller.relocalize_lost_map
+            && let Some(pose) = self.relocalize_in_lost_map(m, timing)
+        {
+            return Some(pose);
+        }
         if new_map {
             // Within the re-acquisition gap, this frame may be a second false one: if the map
             // it starts is lost at once (discarded), tracking resumes where it was.
@@ -55,6 +65,130 @@ impl StateMachine {
             return Some(pose);
         }
         None
+    }
+
+    /// Monocular Idle, before a new map: the frame is relocalized in the map tracking was lost
+    /// in, as ORB-SLAM relocalizes in its map, for `LOST_PLACE_WINDOW_S` after the loss. A new
+    /// monocular map costs the frames its two-view initialisation waits for, and joining it
+    /// back costs a Sim3 merge, whose undo takes every later pool across its seam with it:
+    /// on fr1_desk --mono, 7-22 frames in Idle after each 1 s drop, and with two drops 2-5
+    /// maps at the end. Candidates are the detector's in the lost map and the lost place's
+    /// keyframes; `pool_size` frames relocalized within `pool_window_frames` at poses a
+    /// camera can move between (see `idle_poses_agree`) make a pool, and Localized takes it
+    /// as a transaction: the pool is recorded, its checks run, and a rollback undoes it and
+    /// what was mapped on it. Returns the frame's pose when it was relocalized.
+    pub(super) fn relocalize_in_lost_map(
+        &mut self,
+        m: &Measurement,
+        timing: &mut Timing,
+    ) -> Option<Pose> {
+        let cur = self.current?;
+        let (keyframes, lost_t) = self.lost_keyframes()?;
+        if m.t - lost_t > LOST_PLACE_WINDOW_S {
+            self.idle_pool.clear();
+            return None;
+        }
+        let in_map: BTreeSet<KfId> = self.atlas.maps[&cur].keyframes.keys().copied().collect();
+        let mut candidates = timing.time("relocalize", || {
+            let aliased = &self.aliased;
+            let det = self.detect_frame(m, |k| !in_map.contains(&k) || aliased.contains(&k));
+            let mut c: Vec<loop_validator::Candidate> = det
+                .candidates
+                .into_iter()
+                .take(CANDIDATES_PER_QUERY)
+                .collect();
+            for l in self.lost_place_query(m, &keyframes, |_| true) {
+                if !c.iter().any(|d| d.image == l.image) {
+                    c.push(l);
+                }
+            }
+            c
+        });
+        let mut best: Option<Box<loop_validator::Valid>> = None;
+        for c in candidates.drain(..) {
+            let q = Query {
+                m,
+                map: cur,
+                pose: Isometry3::identity(),
+                kf: None,
+                reference_kf: None,
+                // In the map it was lost in: a pose, no scale to measure.
+                own: None,
+            };
+            let map = &self.atlas.maps[&cur];
+            let verdict = timing.time("relocalize", || {
+                loop_validator::validate(&self.cfg.loop_closing, &self.geo, &q, map, &c)
+            });
+            match verdict {
+                Verdict::Valid(v) => {
+                    let pose = Some(v.pose_in_match);
+                    self.log_closure(m, "relocalization", v.matched, v.n_inliers, pose, "pending");
+                    if best.as_ref().is_none_or(|b| v.n_inliers > b.n_inliers) {
+                        best = Some(v);
+                    }
+                }
+                Verdict::Rejected {
+                    matched,
+                    reason,
+                    inliers,
+                    pose_in_match,
+                } => self.log_closure(
+                    m,
+                    "relocalization",
+                    matched,
+                    inliers,
+                    pose_in_match,
+                    reason.as_str(),
+                ),
+            }
+        }
+        let v = *best?;
+        let window = self.cfg.loop_closing.pool_window_frames as usize;
+        self.idle_pool
+            .retain(|o| m.frame.saturating_sub(o.frame) <= window && o.match_map == cur);
+        self.idle_pool.push(v.clone());
+        let agreement = Agreement::from_config(&self.cfg.loop_closing);
+        let members: Vec<loop_validator::Valid> = self
+            .idle_pool
+            .iter()
+            .filter(|o| idle_poses_agree(&agreement, o, &v))
+            .cloned()
+            .collect();
+        if members.len() < self.cfg.loop_closing.pool_size as usize {
+            return None;
+        }
+        tracing::info!(
+            "frame {}: relocalized in map {cur}, where tracking was lost, by {} frames (keyframe {}, {} inliers)",
+            m.frame,
+            members.len(),
+            v.matched,
+            v.n_inliers
+        );
+        self.idle_pool.clear();
+        self.initializer.reset();
+        self.tracker
+            .reset(v.pose_in_match, m.t, &v.matches, v.matched);
+        let track = TrackResult {
+            pose_cw: v.pose_in_match,
+            matches: v.matches.clone(),
+            n_inliers: v.n_inliers,
+            able_to_track: true,
+            method: TrackMethod::Pnp,
+            reference_kf: Some(v.matched),
+            visible: Vec::new(),
+            twist: Default::default(),
+            mean_chi2: 0.0,
+        };
+        let pose = self.tracked(cur, &track, m);
+        self.accepted = Some(Accepted {
+            query_map: cur,
+            match_map: cur,
+            alignment: Sim3::identity(),
+            members,
+        });
+        self.accepted_in_idle = true;
+        self.flags.able_to_localize = true;
+        Some(pose)
     }
 
     /// The keyframe the tracker referred to last in the current (lost) map, then the map's
@@ -139,5 +273,66 @@ impl StateMachine {
             }
         }
         None
+    }
+}
+
+/// Two frames relocalized in Idle agree when their poses differ by no more than the pool's
+/// tolerances plus what a hand-held camera moves between them (`IDLE_POOL_SPEED_M_S`,
+/// `IDLE_POOL_TURN_DEG_S`): a false match lands anywhere, a real place where the camera can
+/// have gone.
+pub(super) fn idle_poses_agree(a: &Agreement, o: &Valid, v: &Valid) -> bool {
+    let dt = (v.t - o.t).abs();
+    let d = o.pose_in_match * v.pose_in_match.inverse();
+    d.translation.vector.norm() <= a.max_translation_m + IDLE_POOL_SPEED_M_S * dt
+        && d.rotation.angle().to_degrees() <= a.max_rotation_deg + IDLE_POOL_TURN_DEG_S * dt
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Matrix6, UnitQuaternion, Vector3};
+
+    fn valid(t: f64, pose_in_match: Isometry3<f64>) -> Valid {
+        Valid {
+            frame: (t * 30.0).round() as usize,
+            t,
+            query_map: 0,
+            match_map: 0,
+            matched: 1,
+            query_kf: None,
+            reference_kf: None,
+            query_pose: Isometry3::identity(),
+            pose_in_match,
+            scale: 1.0,
+            matches: Vec::new(),
+            own_points: false,
+            n_inliers: 50,
+            information: Matrix6::identity(),
+        }
+    }
+
+    /// Two frames relocalized in Idle agree when a camera can have moved between their poses
+    /// in the time between them, and not when either the distance or the turn is too large.
+    #[test]
+    fn idle_relocalizations_agree_only_within_what_a_camera_moves() {
+        let a = Agreement {
+            max_translation_m: 0.1,
+            max_rotation_deg: 3.0,
+        };
+        let o = valid(0.0, Isometry3::identity());
+        let moved = |dt: f64, metres: f64, degrees: f64| {
+            let r = UnitQuaternion::from_axis_angle(&Vector3::y_axis(), degrees.to_radians());
+            valid(
+                dt,
+                Isometry3::from_parts(Vector3::new(metres, 0.0, 0.0).into(), r),
+            )
+        };
+        // 2 frames apart (1/15 s): 0.1 m + 1 m/s · dt = 0.167 m, 3° + 90°/s · dt = 9°.
+        assert!(idle_poses_agree(&a, &o, &moved(1.0 / 15.0, 0.15, 8.0)));
+        assert!(!idle_poses_agree(&a, &o, &moved(1.0 / 15.0, 0.2, 0.0)));
+        assert!(!idle_poses_agree(&a, &o, &moved(1.0 / 15.0, 0.0, 10.0)));
+        // Half a second apart, the same offsets are within reach; the order does not matter.
+        assert!(idle_poses_agree(&a, &o, &moved(0.5, 0.2, 10.0)));
+        assert!(idle_poses_agree(&a, &moved(0.5, 0.2, 10.0), &o));
     }
 }

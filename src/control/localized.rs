@@ -24,6 +24,10 @@ impl StateMachine {
         for ms in self.merger.poll(&mut self.atlas, true) {
             timing.record("local_ba_thread", ms);
         }
+        if std::mem::take(&mut self.accepted_in_idle) {
+            self.relocalized(acc, m);
+            return;
+        }
         let (into, from) = (acc.match_map, acc.query_map);
         // Closure edges, computed in the query map's frame before any merge.
         let mut edges = Vec::new();
@@ -184,6 +188,27 @@ impl StateMachine {
         } else {
             self.merger.started(m.frame);
         }
+        self.reloc_pool.clear();
+        self.loop_pool.clear();
+        self.expectation_failures = 0;
+        self.localized_peak_inliers = 0;
+        self.unknown_view_frames = 0;
+        self.cond.left_known_area = false;
+    }
+
+    /// Localized's entry for a pool of frames relocalized in the map they were lost in (see
+    /// `relocalize_in_lost_map`): nothing to merge or optimise, and the tracker is there
+    /// already; the pool is recorded so that a rollback can undo it and what is mapped on it.
+    /// Undone, the camera is lost again (Idle starts afresh).
+    fn relocalized(&mut self, acc: Accepted, m: &Measurement) {
+        let map = acc.match_map;
+        let pool = self
+            .atlas
+            .begin_pool(PoolKind::Relocalization { map }, m.frame, m.t);
+        self.before_pool = None;
+        self.pool_frames.push((pool, m.frame));
+        self.settle_pending_rows(&acc, "accepted", Some(pool));
+        self.merger.closed(m.frame);
         self.reloc_pool.clear();
         self.loop_pool.clear();
         self.expectation_failures = 0;

@@ -121,6 +121,10 @@ pub struct StateMachine {
     founded: Option<(MapId, f64)>,
     /// The pool accepted by the validator, waiting for Localized's entry.
     accepted: Option<Accepted>,
+    /// The accepted pool relocalized a lost camera in its map (see `relocalize_in_lost_map`).
+    accepted_in_idle: bool,
+    /// Monocular Idle: frames relocalized in the lost map, waiting to make a pool.
+    idle_pool: Vec<crate::components::loop_validator::Valid>,
     /// Consecutive frames in Localized whose expectation failed, and whose view the map did
     /// not cover.
     expectation_failures: u32,
@@ -221,6 +225,8 @@ impl StateMachine {
             expectation_failures: 0,
             mapping_reobserved: Default::default(),
             localized_peak_inliers: 0,
+            accepted_in_idle: false,
+            idle_pool: Vec::new(),
             unknown_view_frames: 0,
             suspects: Vec::new(),
             contradicting_keyframes: 0,

@@ -280,7 +280,7 @@ fn ours() -> MachineSpec {
                     new_map: true,
                     same_map: true,
                 },
-                "re-track a short gap in the current map, else start a new map",
+                "re-track a short gap in the current map (without depth: relocalize in it), else start a new map",
                 "-",
             ),
             st(

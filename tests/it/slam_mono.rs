@@ -50,10 +50,13 @@ fn desk_small_mono_initializes_tracks_and_is_accurate() {
     assert!(ate < 0.04, "Sim3 ATE {ate} m");
 }
 
-/// Kidnapping in mono: frames 60–80 of the small `desk` are dropped, tracking is lost and a
-/// new map starts at its own scale (median depth 1 at its initialisation). Relocalizing into
-/// the first map must measure that scale (Sim3 validation) and merge with it: one map at the
-/// end, frames of both parts in one frame, and an accurate Sim3 trajectory over both.
+/// Kidnapping in mono, with Idle's relocalization in the lost map off: frames 60–80 of the
+/// small `desk` are dropped, tracking is lost and a new map starts at its own scale (median
+/// depth 1 at its initialisation). Relocalizing into the first map must measure that scale
+/// (Sim3 validation) and merge with it: one map at the end, frames of both parts in one frame,
+/// and an accurate Sim3 trajectory over both. (With it on, the camera is relocalized in the
+/// first map before a new one starts: the next test. The merge is what happens when the
+/// camera is carried beyond the lost place.)
 #[test]
 fn desk_small_mono_kidnapping_is_merged_back_in_sim3() {
     use homing::atlas::{Atlas, AtlasCamera, PoolKind};
@@ -61,10 +64,13 @@ fn desk_small_mono_kidnapping_is_merged_back_in_sim3() {
     let tmp = tempfile::tempdir().unwrap();
     let seq = common::small("desk");
     let atlas = tmp.path().join("atlas.bin");
+    let config = tmp.path().join("new-maps.toml");
+    std::fs::write(&config, "[controller]\nrelocalize_lost_map = false\n").unwrap();
     let summary = run(&RunOptions {
         sequence: seq,
         out: tmp.path().join("run"),
         eval: true,
+        config: Some(config),
         save_map: Some(atlas.clone()),
         perturb: PerturbationSpec {
             mono: true,
@@ -82,7 +88,7 @@ fn desk_small_mono_kidnapping_is_merged_back_in_sim3() {
         .filter(|p| !p.rolled_back)
         .filter_map(|p| match &p.kind {
             PoolKind::Merge { alignment, .. } => Some(alignment.into()),
-            PoolKind::Loop { .. } => None,
+            PoolKind::Loop { .. } | PoolKind::Relocalization { .. } => None,
         })
         .collect();
     assert_eq!(merges.len(), 1, "the new map was not merged back");
@@ -91,6 +97,74 @@ fn desk_small_mono_kidnapping_is_merged_back_in_sim3() {
     let s = merges[0].scale;
     assert!(s.ln().abs() > 0.05, "merge scale {s}");
     assert_eq!(summary.maps, 1);
+    let ev = summary.evaluation.unwrap();
+    assert_eq!(ev["closures"]["accepted_wrong"].as_u64(), Some(0));
+    let ate = ev["ate"]["stats"]["rmse"].as_f64().unwrap();
+    assert!(ate < 0.03, "Sim3 ATE over both parts {ate} m");
+}
+
+/// Kidnapping in mono, default config: after frames 60–80 are dropped, Idle relocalizes the
+/// camera in the map it was lost in (a pool of frames), before the two-view initializer could
+/// start another map: one map, no merge, the relocalization recorded as a pool that a
+/// rollback could undo, the frames after the drop posed within a few frames, no wrong
+/// closure, and an accurate trajectory over both parts.
+#[test]
+fn desk_small_mono_kidnapping_is_relocalized_in_the_lost_map() {
+    use homing::atlas::{Atlas, AtlasCamera, PoolKind};
+    let tmp = tempfile::tempdir().unwrap();
+    let seq = common::small("desk");
+    let atlas = tmp.path().join("atlas.bin");
+    let out = tmp.path().join("run");
+    let summary = run(&RunOptions {
+        sequence: seq,
+        out: out.clone(),
+        eval: true,
+        save_map: Some(atlas.clone()),
+        perturb: PerturbationSpec {
+            mono: true,
+            drops: vec!["60:80".parse().unwrap()],
+            ..Default::default()
+        },
+        ..Default::default()
+    })
+    .unwrap();
+    let camera = AtlasCamera::from(&summary.camera);
+    let loaded = Atlas::load(&atlas, &camera, true).unwrap();
+    let standing: Vec<&PoolKind> = loaded
+        .pools
+        .iter()
+        .filter(|p| !p.rolled_back)
+        .map(|p| &p.kind)
+        .collect();
+    assert!(
+        standing
+            .iter()
+            .any(|k| matches!(k, PoolKind::Relocalization { map: 0 })),
+        "no relocalization in the lost map: {standing:?}"
+    );
+    assert!(
+        !standing.iter().any(|k| matches!(k, PoolKind::Merge { .. })),
+        "a new map was started and merged: {standing:?}"
+    );
+    assert_eq!(summary.maps, 1);
+    // The first frame after the drop with a pose. The place comes back in view at about frame
+    // 97 (the first candidates with enough inliers) and 3 frames make the pool: frame 100.
+    // Starting a new map instead (the test above) poses nothing before frame 108.
+    let states = std::fs::read_to_string(out.join("states.csv")).unwrap();
+    let first_posed = states
+        .lines()
+        .skip(1)
+        .filter_map(|r| {
+            let c: Vec<&str> = r.split(',').collect();
+            let f: usize = c[0].parse().ok()?;
+            (f >= 80 && !c.last()?.is_empty()).then_some(f)
+        })
+        .next()
+        .expect("no frame after the drop has a pose");
+    assert!(
+        first_posed <= 104,
+        "first pose after the drop at frame {first_posed}"
+    );
     let ev = summary.evaluation.unwrap();
     assert_eq!(ev["closures"]["accepted_wrong"].as_u64(), Some(0));
     let ate = ev["ate"]["stats"]["rmse"].as_f64().unwrap();
