@@ -86,6 +86,11 @@ impl StateMachine {
             // `aliasing` after a 1 s drop: room B, joined to the corridor through the lost
             // place, recognised as room A: a loop of 11 m and 166°; undoing the correct
             // merge with it let room B be merged into room A right after).
+            // Without depth the loop was condemned by appearance alone, which says that the
+            // map is wrong somewhere, not which pool: the newest goes, and the merge only when
+            // the map fails again with it newest (fr1_desk --mono, 1 s dark: a right loop
+            // condemned by appearance took the right merge and two right loops with it).
+            let crossed = if self.mono { BTreeMap::new() } else { crossed };
             for (&l, merges) in &crossed {
                 if !self.atlas.pools[l as usize].rolled_back {
                     continue;
