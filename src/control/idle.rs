@@ -89,7 +89,7 @@ impl StateMachine {
             return None;
         }
         let in_map: BTreeSet<KfId> = self.atlas.maps[&cur].keyframes.keys().copied().collect();
-        let mut candidates = timing.time("relocalize", || {
+        let candidates = timing.time("relocalize", || {
             let aliased = &self.aliased;
             let det = self.detect_frame(m, |k| !in_map.contains(&k) || aliased.contains(&k));
             let mut c: Vec<loop_validator::Candidate> = det
@@ -105,41 +105,15 @@ impl StateMachine {
             c
         });
         let mut best: Option<Box<loop_validator::Valid>> = None;
-        for c in candidates.drain(..) {
-            let q = Query {
-                m,
-                map: cur,
-                pose: Isometry3::identity(),
-                kf: None,
-                reference_kf: None,
-                // In the map it was lost in: a pose, no scale to measure.
-                own: None,
+        for c in &candidates {
+            let verdict = timing.time("relocalize", || self.validate_in_map(m, cur, c));
+            let Some(v) = self.valid_or_log(m, "relocalization", verdict) else {
+                continue;
             };
-            let map = &self.atlas.maps[&cur];
-            let verdict = timing.time("relocalize", || {
-                loop_validator::validate(&self.cfg.loop_closing, &self.geo, &q, map, &c)
-            });
-            match verdict {
-                Verdict::Valid(v) => {
-                    let pose = Some(v.pose_in_match);
-                    self.log_closure(m, "relocalization", v.matched, v.n_inliers, pose, "pending");
-                    if best.as_ref().is_none_or(|b| v.n_inliers > b.n_inliers) {
-                        best = Some(v);
-                    }
-                }
-                Verdict::Rejected {
-                    matched,
-                    reason,
-                    inliers,
-                    pose_in_match,
-                } => self.log_closure(
-                    m,
-                    "relocalization",
-                    matched,
-                    inliers,
-                    pose_in_match,
-                    reason.as_str(),
-                ),
+            let pose = Some(v.pose_in_match);
+            self.log_closure(m, "relocalization", v.matched, v.n_inliers, pose, "pending");
+            if best.as_ref().is_none_or(|b| v.n_inliers > b.n_inliers) {
+                best = Some(v);
             }
         }
         let v = *best?;
@@ -224,55 +198,72 @@ impl StateMachine {
             if self.atlas.map_of_keyframe(c.image as KfId) != Some(cur) {
                 continue;
             }
-            let q = Query {
-                m,
-                map: cur,
-                pose: Isometry3::identity(),
-                kf: None,
-                reference_kf: None,
-                // Relocalization in the same map: a pose, no scale to measure.
-                own: None,
+            let verdict = self.validate_in_map(m, cur, c);
+            let Some(v) = self.valid_or_log(m, "relocalization", verdict) else {
+                continue;
             };
-            let verdict = loop_validator::validate(
-                &self.cfg.loop_closing,
-                &self.geo,
-                &q,
-                &self.atlas.maps[&cur],
-                c,
+            self.log_closure(
+                m,
+                "relocalization",
+                v.matched,
+                v.n_inliers,
+                Some(v.pose_in_match),
+                "accepted",
             );
-            match verdict {
-                Verdict::Valid(v) => {
-                    self.log_closure(
-                        m,
-                        "relocalization",
-                        v.matched,
-                        v.n_inliers,
-                        Some(v.pose_in_match),
-                        "accepted",
-                    );
-                    self.tracker
-                        .reset(v.pose_in_match, m.t, &v.matches, v.matched);
-                    self.flags.able_to_track = true;
-                    self.last_tracked_t = Some(m.t);
-                    // ORB-SLAM2 drops the relocalized frame itself; tracking resumes next frame.
-                    return None;
-                }
-                Verdict::Rejected {
-                    matched,
-                    reason,
-                    inliers,
-                    pose_in_match,
-                } => self.log_closure(
-                    m,
-                    "relocalization",
-                    matched,
-                    inliers,
-                    pose_in_match,
-                    reason.as_str(),
-                ),
-            }
+            self.tracker
+                .reset(v.pose_in_match, m.t, &v.matches, v.matched);
+            self.flags.able_to_track = true;
+            self.last_tracked_t = Some(m.t);
+            // ORB-SLAM2 drops the relocalized frame itself; tracking resumes next frame.
+            return None;
         }
         None
+    }
+
+    /// The validator's verdict on candidate `c` for frame `m` in map `cur`, the map the
+    /// camera was lost in: a pose there, no scale to measure.
+    fn validate_in_map(
+        &self,
+        m: &Measurement,
+        cur: crate::atlas::MapId,
+        c: &loop_validator::Candidate,
+    ) -> Verdict {
+        let q = Query {
+            m,
+            map: cur,
+            pose: Isometry3::identity(),
+            kf: None,
+            reference_kf: None,
+            own: None,
+        };
+        loop_validator::validate(
+            &self.cfg.loop_closing,
+            &self.geo,
+            &q,
+            &self.atlas.maps[&cur],
+            c,
+        )
+    }
+
+    /// A rejected verdict is logged as a `kind` row of closures.csv; a valid one is returned.
+    fn valid_or_log(
+        &mut self,
+        m: &Measurement,
+        kind: &str,
+        verdict: Verdict,
+    ) -> Option<Box<Valid>> {
+        match verdict {
+            Verdict::Valid(v) => Some(v),
+            Verdict::Rejected {
+                matched,
+                reason,
+                inliers,
+                pose_in_match,
+            } => {
+                self.log_closure(m, kind, matched, inliers, pose_in_match, reason.as_str());
+                None
+            }
+        }
     }
 }
 

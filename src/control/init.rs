@@ -54,5 +54,6 @@ impl StateMachine {
         self.last_tracked_t = Some(m.t);
         self.reloc_pool.clear();
         self.loop_pool.clear();
+        self.idle_pool.clear();
     }
 }
