@@ -604,6 +604,27 @@ impl StateMachine {
         out
     }
 
+    /// A rejected verdict is logged as a `kind` row of closures.csv; a valid one is returned.
+    pub(super) fn valid_or_log(
+        &mut self,
+        m: &Measurement,
+        kind: &str,
+        verdict: Verdict,
+    ) -> Option<Box<loop_validator::Valid>> {
+        match verdict {
+            Verdict::Valid(v) => Some(v),
+            Verdict::Rejected {
+                matched,
+                reason,
+                inliers,
+                pose_in_match,
+            } => {
+                self.log_closure(m, kind, matched, inliers, pose_in_match, reason.as_str());
+                None
+            }
+        }
+    }
+
     /// Logs a validator verdict and offers a valid candidate to its pool. Returns true when a
     /// pool was accepted (`able_to_localize`).
     pub(super) fn offer(
@@ -615,107 +636,98 @@ impl StateMachine {
     ) -> bool {
         let agreement = Agreement::from_config(&self.cfg.loop_closing);
         let pool_size = self.cfg.loop_closing.pool_size as usize;
-        match verdict {
-            Verdict::Rejected {
-                matched,
-                reason,
-                inliers,
-                pose_in_match,
-            } => {
-                self.log_closure(m, kind, matched, inliers, pose_in_match, reason.as_str());
-                false
-            }
-            Verdict::Valid(v) => {
-                let same = Agreement::refusal_from_config(&self.cfg.loop_closing);
-                let refused = if kind == "loop" {
-                    self.loop_pool.is_refused(&v, &same)
-                } else {
-                    self.reloc_pool.is_refused(&v, &same)
-                };
-                let drift = if self.mono {
-                    None
-                } else {
-                    self.atlas.maps.get(&v.query_map).and_then(|map| {
-                        loop_validator::implausible_drift(&self.cfg.loop_closing, map, &v)
-                    })
-                };
-                if let Some((moved, turned, path)) = drift {
-                    tracing::debug!(
-                        "frame {}: loop to keyframe {} would move the camera {moved:.2} m / \
-                         {turned:.1}° after {path:.2} m of path: not drift",
-                        m.frame,
-                        v.matched
-                    );
-                }
-                let rejection = if drift.is_some() {
-                    Some(loop_validator::Rejection::ImplausibleDrift)
-                } else if refused {
-                    Some(loop_validator::Rejection::RolledBackAlignment)
-                } else {
-                    None
-                };
-                if let Some(r) = rejection {
-                    self.log_closure(
-                        m,
-                        kind,
-                        v.matched,
-                        v.n_inliers,
-                        Some(v.pose_in_match),
-                        r.as_str(),
-                    );
-                    return false;
-                }
-                self.log_closure(
-                    m,
-                    kind,
-                    v.matched,
-                    v.n_inliers,
-                    Some(v.pose_in_match),
-                    "pending",
-                );
-                let pool = if kind == "loop" {
-                    &mut self.loop_pool
-                } else {
-                    &mut self.reloc_pool
-                };
-                let accepted = match self.spec.acceptance {
-                    Acceptance::Immediate => Some(Accepted {
-                        query_map: v.query_map,
-                        match_map: v.match_map,
-                        alignment: v.alignment(),
-                        members: vec![*v],
-                    }),
-                    Acceptance::Pool => pool.offer(*v, window, pool_size, &agreement),
-                };
-                let Some(acc) = accepted else { return false };
-                if acc.query_map != acc.match_map && !self.mono {
-                    let Some(refusal) = self.merge_refusal(&acc, m) else {
-                        return false;
-                    };
-                    if let Some(why) = refusal {
-                        tracing::info!(
-                            "frame {}: {kind} pool refused: merging map {} into map {} {why} (a look-alike place)",
-                            m.frame,
-                            acc.query_map,
-                            acc.match_map
-                        );
-                        self.refuse(acc);
-                        return false;
-                    }
-                }
+        let Some(v) = self.valid_or_log(m, kind, verdict) else {
+            return false;
+        };
+        let same = Agreement::refusal_from_config(&self.cfg.loop_closing);
+        let refused = if kind == "loop" {
+            self.loop_pool.is_refused(&v, &same)
+        } else {
+            self.reloc_pool.is_refused(&v, &same)
+        };
+        let drift = if self.mono {
+            None
+        } else {
+            self.atlas
+                .maps
+                .get(&v.query_map)
+                .and_then(|map| loop_validator::implausible_drift(&self.cfg.loop_closing, map, &v))
+        };
+        if let Some((moved, turned, path)) = drift {
+            tracing::debug!(
+                "frame {}: loop to keyframe {} would move the camera {moved:.2} m / \
+                 {turned:.1}° after {path:.2} m of path: not drift",
+                m.frame,
+                v.matched
+            );
+        }
+        let rejection = if drift.is_some() {
+            Some(loop_validator::Rejection::ImplausibleDrift)
+        } else if refused {
+            Some(loop_validator::Rejection::RolledBackAlignment)
+        } else {
+            None
+        };
+        if let Some(r) = rejection {
+            self.log_closure(
+                m,
+                kind,
+                v.matched,
+                v.n_inliers,
+                Some(v.pose_in_match),
+                r.as_str(),
+            );
+            return false;
+        }
+        self.log_closure(
+            m,
+            kind,
+            v.matched,
+            v.n_inliers,
+            Some(v.pose_in_match),
+            "pending",
+        );
+        let pool = if kind == "loop" {
+            &mut self.loop_pool
+        } else {
+            &mut self.reloc_pool
+        };
+        let accepted = match self.spec.acceptance {
+            Acceptance::Immediate => Some(Accepted {
+                query_map: v.query_map,
+                match_map: v.match_map,
+                alignment: v.alignment(),
+                members: vec![*v],
+            }),
+            Acceptance::Pool => pool.offer(*v, window, pool_size, &agreement),
+        };
+        let Some(acc) = accepted else { return false };
+        if acc.query_map != acc.match_map && !self.mono {
+            let Some(refusal) = self.merge_refusal(&acc, m) else {
+                return false;
+            };
+            if let Some(why) = refusal {
                 tracing::info!(
-                    "frame {}: {kind} pool accepted: map {} -> map {} from {} candidates (scale {:.3})",
+                    "frame {}: {kind} pool refused: merging map {} into map {} {why} (a look-alike place)",
                     m.frame,
                     acc.query_map,
-                    acc.match_map,
-                    acc.members.len(),
-                    acc.alignment.scale
+                    acc.match_map
                 );
-                self.accepted = Some(acc);
-                self.flags.able_to_localize = true;
-                true
+                self.refuse(acc);
+                return false;
             }
         }
+        tracing::info!(
+            "frame {}: {kind} pool accepted: map {} -> map {} from {} candidates (scale {:.3})",
+            m.frame,
+            acc.query_map,
+            acc.match_map,
+            acc.members.len(),
+            acc.alignment.scale
+        );
+        self.accepted = Some(acc);
+        self.flags.able_to_localize = true;
+        true
     }
 
     /// The closures.csv rows of `acc`'s candidates, still pending, get their verdict.

@@ -244,27 +244,6 @@ impl StateMachine {
             c,
         )
     }
-
-    /// A rejected verdict is logged as a `kind` row of closures.csv; a valid one is returned.
-    fn valid_or_log(
-        &mut self,
-        m: &Measurement,
-        kind: &str,
-        verdict: Verdict,
-    ) -> Option<Box<Valid>> {
-        match verdict {
-            Verdict::Valid(v) => Some(v),
-            Verdict::Rejected {
-                matched,
-                reason,
-                inliers,
-                pose_in_match,
-            } => {
-                self.log_closure(m, kind, matched, inliers, pose_in_match, reason.as_str());
-                None
-            }
-        }
-    }
 }
 
 /// Two frames relocalized in Idle agree when their poses differ by no more than the pool's
