@@ -154,13 +154,12 @@ impl StateMachine {
             mean_chi2: 0.0,
         };
         let pose = self.tracked(cur, &track, m);
-        self.accepted = Some(Accepted {
+        self.relocalized_in_idle = Some(Accepted {
             query_map: cur,
             match_map: cur,
             alignment: Sim3::identity(),
             members,
         });
-        self.accepted_in_idle = true;
         self.flags.able_to_localize = true;
         Some(pose)
     }

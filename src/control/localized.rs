@@ -18,16 +18,19 @@ impl StateMachine {
     /// tracker continues from the best-matching local map.
     pub(super) fn localize(&mut self, m: &Measurement, timing: &mut Timing) {
         self.flags.able_to_localize = false;
-        let Some(acc) = self.accepted.take() else {
+        if self.relocalized_in_idle.is_none() && self.accepted.is_none() {
             return;
-        };
+        }
         for ms in self.merger.poll(&mut self.atlas, true) {
             timing.record("local_ba_thread", ms);
         }
-        if std::mem::take(&mut self.accepted_in_idle) {
+        if let Some(acc) = self.relocalized_in_idle.take() {
             self.relocalized(acc, m);
             return;
         }
+        let Some(acc) = self.accepted.take() else {
+            return;
+        };
         let (into, from) = (acc.match_map, acc.query_map);
         // Closure edges, computed in the query map's frame before any merge.
         let mut edges = Vec::new();
@@ -188,6 +191,12 @@ impl StateMachine {
         } else {
             self.merger.started(m.frame);
         }
+        self.start_localized();
+    }
+
+    /// What every Localized entry starts from: no pending candidates, no failed expectations,
+    /// no inlier peak yet, in known space.
+    fn start_localized(&mut self) {
         self.reloc_pool.clear();
         self.loop_pool.clear();
         self.expectation_failures = 0;
@@ -209,12 +218,7 @@ impl StateMachine {
         self.pool_frames.push((pool, m.frame));
         self.settle_pending_rows(&acc, "accepted", Some(pool));
         self.merger.closed(m.frame);
-        self.reloc_pool.clear();
-        self.loop_pool.clear();
-        self.expectation_failures = 0;
-        self.localized_peak_inliers = 0;
-        self.unknown_view_frames = 0;
-        self.cond.left_known_area = false;
+        self.start_localized();
     }
 
     /// Replaces a query keyframe's points by the matched map's points it was matched to, then

@@ -121,8 +121,9 @@ pub struct StateMachine {
     founded: Option<(MapId, f64)>,
     /// The pool accepted by the validator, waiting for Localized's entry.
     accepted: Option<Accepted>,
-    /// The accepted pool relocalized a lost camera in its map (see `relocalize_in_lost_map`).
-    accepted_in_idle: bool,
+    /// A pool of Idle frames relocalized in the map they were lost in, waiting for
+    /// Localized's entry (see `relocalize_in_lost_map`).
+    relocalized_in_idle: Option<Accepted>,
     /// Monocular Idle: frames relocalized in the lost map, waiting to make a pool.
     idle_pool: Vec<crate::components::loop_validator::Valid>,
     /// Consecutive frames in Localized whose expectation failed, and whose view the map did
@@ -225,7 +226,7 @@ impl StateMachine {
             expectation_failures: 0,
             mapping_reobserved: Default::default(),
             localized_peak_inliers: 0,
-            accepted_in_idle: false,
+            relocalized_in_idle: None,
             idle_pool: Vec::new(),
             unknown_view_frames: 0,
             suspects: Vec::new(),

@@ -59,29 +59,13 @@ fn desk_small_mono_initializes_tracks_and_is_accurate() {
 /// camera is carried beyond the lost place.)
 #[test]
 fn desk_small_mono_kidnapping_is_merged_back_in_sim3() {
-    use homing::atlas::{Atlas, AtlasCamera, PoolKind};
+    use homing::atlas::PoolKind;
     use homing::geometry::Sim3;
     let tmp = tempfile::tempdir().unwrap();
-    let seq = common::small("desk");
-    let atlas = tmp.path().join("atlas.bin");
-    let config = tmp.path().join("new-maps.toml");
-    std::fs::write(&config, "[controller]\nrelocalize_lost_map = false\n").unwrap();
-    let summary = run(&RunOptions {
-        sequence: seq,
-        out: tmp.path().join("run"),
-        eval: true,
-        config: Some(config),
-        save_map: Some(atlas.clone()),
-        perturb: PerturbationSpec {
-            mono: true,
-            drops: vec!["60:80".parse().unwrap()],
-            ..Default::default()
-        },
-        ..Default::default()
-    })
-    .unwrap();
-    let camera = AtlasCamera::from(&summary.camera);
-    let loaded = Atlas::load(&atlas, &camera, true).unwrap();
+    let (summary, loaded) = kidnapped_small_desk(
+        tmp.path(),
+        Some("[controller]\nrelocalize_lost_map = false\n"),
+    );
     let merges: Vec<Sim3> = loaded
         .pools
         .iter()
@@ -110,26 +94,10 @@ fn desk_small_mono_kidnapping_is_merged_back_in_sim3() {
 /// closure, and an accurate trajectory over both parts.
 #[test]
 fn desk_small_mono_kidnapping_is_relocalized_in_the_lost_map() {
-    use homing::atlas::{Atlas, AtlasCamera, PoolKind};
+    use homing::atlas::PoolKind;
     let tmp = tempfile::tempdir().unwrap();
-    let seq = common::small("desk");
-    let atlas = tmp.path().join("atlas.bin");
+    let (summary, loaded) = kidnapped_small_desk(tmp.path(), None);
     let out = tmp.path().join("run");
-    let summary = run(&RunOptions {
-        sequence: seq,
-        out: out.clone(),
-        eval: true,
-        save_map: Some(atlas.clone()),
-        perturb: PerturbationSpec {
-            mono: true,
-            drops: vec!["60:80".parse().unwrap()],
-            ..Default::default()
-        },
-        ..Default::default()
-    })
-    .unwrap();
-    let camera = AtlasCamera::from(&summary.camera);
-    let loaded = Atlas::load(&atlas, &camera, true).unwrap();
     let standing: Vec<&PoolKind> = loaded
         .pools
         .iter()
@@ -169,4 +137,35 @@ fn desk_small_mono_kidnapping_is_relocalized_in_the_lost_map() {
     assert_eq!(ev["closures"]["accepted_wrong"].as_u64(), Some(0));
     let ate = ev["ate"]["stats"]["rmse"].as_f64().unwrap();
     assert!(ate < 0.03, "Sim3 ATE over both parts {ate} m");
+}
+
+/// The small `desk` in mono with frames 60–80 dropped, outputs in `dir/run`, under the config
+/// text `config` if given: the run's summary and its saved atlas.
+fn kidnapped_small_desk(
+    dir: &std::path::Path,
+    config: Option<&str>,
+) -> (homing::outputs::Summary, homing::atlas::Atlas) {
+    use homing::atlas::{Atlas, AtlasCamera};
+    let atlas = dir.join("atlas.bin");
+    let config = config.map(|text| {
+        let path = dir.join("config.toml");
+        std::fs::write(&path, text).unwrap();
+        path
+    });
+    let summary = run(&RunOptions {
+        sequence: common::small("desk"),
+        out: dir.join("run"),
+        eval: true,
+        config,
+        save_map: Some(atlas.clone()),
+        perturb: PerturbationSpec {
+            mono: true,
+            drops: vec!["60:80".parse().unwrap()],
+            ..Default::default()
+        },
+        ..Default::default()
+    })
+    .unwrap();
+    let loaded = Atlas::load(&atlas, &AtlasCamera::from(&summary.camera), true).unwrap();
+    (summary, loaded)
 }
