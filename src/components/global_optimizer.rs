@@ -279,10 +279,17 @@ fn apply(map: &mut Map, ids: &[KfId], before: &[Sim3], graph: &PoseGraph) {
 /// at about its predicted depth is *confirmed by depth* (even when blur kept its descriptor from
 /// matching); one whose neighbours all lie clearly *behind* it is *contradicted* — the camera
 /// sees through where the map says a surface is. Nearer neighbours (occlusion) say nothing.
+///
+/// Without depth, a predicted cell without an inlier is *resembled* when a keypoint near one of
+/// its predicted points still looks like that point (within [`APPEARANCE_MAX_DISTANCE`]): blur
+/// or a changed viewpoint kept the tracker from matching it, but the texture the map predicts
+/// is there. A wrong map predicts texture the camera does not see.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct Expectation {
     pub expected_cells: usize,
     pub confirmed_cells: usize,
+    /// Expected cells not confirmed, but resembled.
+    pub resembled_cells: usize,
     pub depth_confirmed: usize,
     pub depth_contradicted: usize,
     /// Cells holding keypoints of the frame, and those of them the map predicts.
@@ -294,6 +301,11 @@ impl Expectation {
     /// Share of the predicted cells that are re-observed.
     pub fn ratio(&self) -> f64 {
         self.confirmed_cells as f64 / self.expected_cells.max(1) as f64
+    }
+
+    /// Share of the predicted cells that are re-observed or resembled.
+    pub fn found_share(&self) -> f64 {
+        (self.confirmed_cells + self.resembled_cells) as f64 / self.expected_cells.max(1) as f64
     }
 
     /// Share of what the camera sees that the map predicts.
@@ -400,19 +412,28 @@ fn found_by_appearance<'a>(
             continue;
         }
         confirmed += 1;
-        if kf
-            .grid
-            .in_area(&kf.keypoints, uv.x, uv.y, APPEARANCE_SEARCH_PX, 0, u8::MAX)
-            .iter()
-            .any(|&i| {
-                crate::components::preprocess::hamming(&kf.descriptors[i], &p.descriptor)
-                    <= APPEARANCE_MAX_DISTANCE
-            })
-        {
+        if looks_like(&kf.grid, &kf.keypoints, &kf.descriptors, &p.descriptor, uv) {
             found += 1;
         }
     }
     (confirmed, found)
+}
+
+/// Whether a keypoint within [`APPEARANCE_SEARCH_PX`] of pixel `uv` looks like `descriptor`
+/// (within [`APPEARANCE_MAX_DISTANCE`]).
+fn looks_like(
+    grid: &crate::components::preprocess::FeatureGrid,
+    keypoints: &[crate::components::preprocess::Keypoint],
+    descriptors: &[crate::components::preprocess::Descriptor],
+    descriptor: &crate::components::preprocess::Descriptor,
+    uv: Vector2<f64>,
+) -> bool {
+    grid.in_area(keypoints, uv.x, uv.y, APPEARANCE_SEARCH_PX, 0, u8::MAX)
+        .iter()
+        .any(|&i| {
+            crate::components::preprocess::hamming(&descriptors[i], descriptor)
+                <= APPEARANCE_MAX_DISTANCE
+        })
 }
 
 /// Of `points`, those in front of a camera at `pose_cw`, projecting into the image, and seen
@@ -550,6 +571,7 @@ pub fn expectation(
 ) -> Expectation {
     let cell = |uv: (f64, f64), px: f64| ((uv.0 / px) as u32, (uv.1 / px) as u32);
     let mut predicted: Vec<(f64, f64)> = Vec::new();
+    let mut resembling: BTreeSet<(u32, u32)> = BTreeSet::new();
     let (mut depth_confirmed, mut depth_contradicted) = (0, 0);
     for p in track.visible.iter().filter_map(|id| map.points.get(id)) {
         let pc = Map::in_camera(&track.pose_cw, &p.position);
@@ -557,6 +579,12 @@ pub fn expectation(
             continue;
         };
         predicted.push((uv.x, uv.y));
+        let c = cell((uv.x, uv.y), cell_px);
+        if !resembling.contains(&c)
+            && looks_like(&m.grid, &m.keypoints, &m.descriptors, &p.descriptor, uv)
+        {
+            resembling.insert(c);
+        }
         let depths = depths_near(&m.grid, &m.keypoints, &m.depth, uv.x, uv.y);
         if depths.is_empty() {
             continue;
@@ -576,8 +604,7 @@ pub fn expectation(
         .filter(|(mt, _)| mt.is_some())
         .map(|(_, k)| cell((k.un.x, k.un.y), cell_px))
         .filter(|c| expected.contains(c))
-        .collect::<BTreeSet<_>>()
-        .len();
+        .collect::<BTreeSet<_>>();
     // Coverage is judged on coarser cells: the map's points are sparser than the keypoints.
     let known: BTreeSet<(u32, u32)> = predicted
         .iter()
@@ -590,7 +617,8 @@ pub fn expectation(
         .collect();
     Expectation {
         expected_cells: expected.len(),
-        confirmed_cells: confirmed,
+        confirmed_cells: confirmed.len(),
+        resembled_cells: resembling.difference(&confirmed).count(),
         depth_confirmed,
         depth_contradicted,
         feature_cells: features.len(),
@@ -787,6 +815,52 @@ mod tests {
         // A wall farther away: the points are not where this keyframe sees a surface, so
         // appearance is not judged (the depth check's business).
         assert_eq!(check(3.5, 0x00).1, 0);
+    }
+
+    /// Without depth, a predicted cell the tracker did not match is resembled when the camera
+    /// sees the point's texture there (blur, a changed viewpoint), not when it sees another
+    /// texture (a look-alike's surroundings).
+    #[test]
+    fn unmatched_cells_are_resembled_only_by_the_texture_the_map_predicts() {
+        let geo = ImageGeometry::new(Intrinsics::TUM_FREIBURG1, 640, 480, 1.2, 8);
+        let mut map = Map::new(0);
+        add_textured_wall_keyframe(&mut map, &geo, 0, 2.0, 0x00);
+        let seen = |texture: u8, matched_every: usize| {
+            let mut m = wall_view(1, 2.0, texture);
+            m.depth.fill(0.0);
+            let points: Vec<PointId> = map.points.keys().copied().collect();
+            // The keypoints are the wall's, in the same order as its points.
+            let matches = (0..m.keypoints.len())
+                .map(|i| (i % matched_every == 0).then_some(points[i]))
+                .collect();
+            let track = crate::components::tracker::TrackResult {
+                pose_cw: Isometry3::identity(),
+                matches,
+                n_inliers: 0,
+                able_to_track: true,
+                method: crate::components::tracker::TrackMethod::MotionModel,
+                reference_kf: None,
+                visible: points,
+                twist: nalgebra::Vector6::zeros(),
+                mean_chi2: 0.0,
+            };
+            expectation(&geo, &map, &m, &track, 640.0 / 16.0, 640.0 / 8.0)
+        };
+        // A quarter of the points matched; the rest show the predicted texture.
+        let e = seen(0x00, 4);
+        assert!(e.expected_cells >= 100, "{e:?}");
+        assert!(e.confirmed_cells < e.expected_cells, "{e:?}");
+        assert_eq!(
+            e.confirmed_cells + e.resembled_cells,
+            e.expected_cells,
+            "{e:?}"
+        );
+        assert_eq!(e.found_share(), 1.0);
+        // The same matches, another texture around them: nothing more is found.
+        let e = seen(0xff, 4);
+        assert!(e.confirmed_cells > 0, "{e:?}");
+        assert_eq!(e.resembled_cells, 0, "{e:?}");
+        assert_eq!(e.found_share(), e.ratio());
     }
 
     #[test]

@@ -129,10 +129,10 @@ pub struct StateMachine {
     /// Consecutive frames in Localized whose expectation failed, and whose view the map did
     /// not cover.
     expectation_failures: u32,
-    /// Without depth: the share of predicted cells re-observed on the last mapped frames
-    /// (at most `REOBSERVED_WINDOW`), the appearance check's reference (see
-    /// `appearance_floor`).
-    mapping_reobserved: std::collections::VecDeque<f64>,
+    /// Without depth: the shares of predicted cells re-observed and found (re-observed or
+    /// resembled) on the last mapped frames (at most `REOBSERVED_WINDOW`), the appearance
+    /// check's references (see `appearance_floor`, `resemblance_floor`).
+    mapping_reobserved: std::collections::VecDeque<(f64, f64)>,
     /// Most inliers of a frame since Localized was entered (see `track_localized`).
     localized_peak_inliers: usize,
     unknown_view_frames: u32,
