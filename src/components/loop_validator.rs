@@ -201,10 +201,22 @@ pub fn validate(
             pairs.push((qi, *p));
         }
     }
-    for (qi, p) in search_keyframe_points(q.m, kf, map) {
-        if !used[qi] && seen.insert(p) {
-            used[qi] = true;
-            pairs.push((qi, p));
+    // Without depth, a keyframe holds only the points triangulated with its neighbours: the
+    // last ones before a loss, which had no successor, hold few, and their neighbours the rest
+    // of what they saw (ORB-SLAM3 searches the candidate's covisible window for merges).
+    let window: Vec<KfId> = if kf.depth.iter().all(|d| *d <= 0.0) {
+        std::iter::once(matched)
+            .chain(kf.best_covisible(MONO_SEARCH_WINDOW))
+            .collect()
+    } else {
+        vec![matched]
+    };
+    for k in window.iter().filter_map(|k| map.keyframes.get(k)) {
+        for (qi, p) in search_keyframe_points(q.m, k, map) {
+            if !used[qi] && seen.insert(p) {
+                used[qi] = true;
+                pairs.push((qi, p));
+            }
         }
     }
     if pairs.len() < cfg.min_validation_matches as usize {
@@ -470,6 +482,8 @@ fn search_keyframe_points(
     pairs.into_iter().map(|(qi, p, _)| (qi, p)).collect()
 }
 
+/// Covisible keyframes searched with a monocular candidate (ORB-SLAM3's merge detection: 5).
+const MONO_SEARCH_WINDOW: usize = 5;
 /// Fewest inliers of the monocular similarity RANSAC (ORB-SLAM2's loop closing: 20).
 const SIM3_MIN_INLIERS: usize = 20;
 /// Fewest refined inliers with a point of the query's map to measure the scale.
@@ -496,13 +510,20 @@ fn sim3_pose(
             continue;
         };
         let xm = &map.points[&pm];
-        let Some(&ri) = xm.observations.get(&kf.id) else {
-            continue;
+        let in_kf = (kf.pose_cw * Point3::from(xm.position)).coords;
+        // Where the keyframe saw the point, or (a point of its covisible window) where it
+        // projects in it.
+        let uv_kf = match xm.observations.get(&kf.id) {
+            Some(&ri) => kf.keypoints[ri].un,
+            None => match geo.project_in_image(&in_kf) {
+                Some(uv) => uv,
+                None => continue,
+            },
         };
         p1.push((q.pose * Point3::from(xq.position)).coords);
-        p2.push((kf.pose_cw * Point3::from(xm.position)).coords);
+        p2.push(in_kf);
         uv1.push(q.m.keypoints[qi].un);
-        uv2.push(kf.keypoints[ri].un);
+        uv2.push(uv_kf);
     }
     let params = Sim3RansacParams {
         sigma: 1.5,
@@ -1117,13 +1138,27 @@ mod tests {
         Measurement::synthetic(frame, uvs, 30.0, 0.0, descriptors.to_vec())
     }
 
-    #[test]
-    fn monocular_validation_measures_the_scale_between_two_maps() {
+    /// A monocular query: `n` points seen by a camera 20 cm and a few degrees from the matched
+    /// map's origin, in the query's own map at half the matched map's scale and in another
+    /// world frame (`a`: query world → matched world, scale 2).
+    struct MonoQuery {
+        geo: ImageGeometry,
+        xs: Vec<Vector3<f64>>,
+        descriptors: Vec<[u8; 32]>,
+        a: Sim3,
+        cam_in_match: Isometry3<f64>,
+        m: Measurement,
+        own: Map,
+        own_points: Vec<Option<PointId>>,
+        pose: Isometry3<f64>,
+        own_kf: KfId,
+    }
+
+    fn mono_query(n: usize) -> MonoQuery {
         use crate::optim::Intrinsics;
         use rand::{Rng, SeedableRng};
         let geo = ImageGeometry::new(Intrinsics::TUM_FREIBURG1, 640, 480, 1.2, 8);
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
-        let n = 150;
         let xs: Vec<Vector3<f64>> = (0..n)
             .map(|_| {
                 Vector3::new(
@@ -1134,61 +1169,84 @@ mod tests {
             })
             .collect();
         let descriptors: Vec<[u8; 32]> = (0..n).map(|_| rng.random()).collect();
-        // The matched map: a keyframe at its origin observing every point.
-        let mut matched = Map::new(0);
-        let kf_pose = Isometry3::identity();
-        let kf = matched.add_keyframe(&mono_view(0, &geo, &kf_pose, &xs, &descriptors), kf_pose);
-        let pm: Vec<PointId> = (0..n)
-            .map(|i| matched.add_point(kf, i, xs[i], 1.2, 8))
-            .collect();
-        // The query's map: the same place at half the scale, in another world frame
-        // (`a`: query world → matched world, scale 2).
         let a = Sim3 {
             rotation: nalgebra::Rotation3::new(Vector3::new(0.1, -0.4, 0.2)),
             translation: Vector3::new(1.0, -2.0, 0.5),
             scale: 2.0,
         };
-        let in_query = |x: &Vector3<f64>| a.inverse().transform_point(x);
-        // The query camera, 20 cm and a few degrees from the keyframe.
         let cam_in_match =
             Isometry3::new(Vector3::new(0.2, 0.05, -0.1), Vector3::new(0.02, 0.08, 0.0));
-        let q_m = mono_view(9, &geo, &cam_in_match, &xs, &descriptors);
+        let m = mono_view(9, &geo, &cam_in_match, &xs, &descriptors);
         // Its pose in its own map: `S(1/2) ∘ T ∘ a` is rigid.
         let half = Sim3 {
             scale: 0.5,
             ..Sim3::identity()
         };
-        let query_pose = half
+        let pose = half
             .compose(&Sim3::from_isometry(&cam_in_match))
             .compose(&a)
             .to_isometry();
         let mut own = Map::new(1);
-        let qkf = own.add_keyframe(&q_m, query_pose);
+        let own_kf = own.add_keyframe(&m, pose);
         let own_points: Vec<Option<PointId>> = (0..n)
-            .map(|i| Some(own.add_point(qkf, i, in_query(&xs[i]), 1.2, 8)))
+            .map(|i| Some(own.add_point(own_kf, i, a.inverse().transform_point(&xs[i]), 1.2, 8)))
             .collect();
+        MonoQuery {
+            geo,
+            xs,
+            descriptors,
+            a,
+            cam_in_match,
+            m,
+            own,
+            own_points,
+            pose,
+            own_kf,
+        }
+    }
+
+    impl MonoQuery {
+        fn query(&self) -> Query<'_> {
+            Query {
+                m: &self.m,
+                map: 1,
+                pose: self.pose,
+                kf: None,
+                reference_kf: Some(self.own_kf),
+                own: Some((&self.own, &self.own_points)),
+            }
+        }
+    }
+
+    #[test]
+    fn monocular_validation_measures_the_scale_between_two_maps() {
+        let n = 150;
+        let mq = mono_query(n);
+        let (geo, xs, a, cam_in_match) = (&mq.geo, &mq.xs, &mq.a, mq.cam_in_match);
+        let in_query = |x: &Vector3<f64>| a.inverse().transform_point(x);
+        // The matched map: a keyframe at its origin observing every point.
+        let mut matched = Map::new(0);
+        let kf_pose = Isometry3::identity();
+        let kf = matched.add_keyframe(&mono_view(0, geo, &kf_pose, xs, &mq.descriptors), kf_pose);
+        let pm: Vec<PointId> = (0..n)
+            .map(|i| matched.add_point(kf, i, xs[i], 1.2, 8))
+            .collect();
+        let (own, own_points, geo) = (&mq.own, &mq.own_points, geo);
         let c = Candidate {
             image: kf as u64,
             score: 1.0,
             matches: (0..n as u32).map(|i| (i, i)).collect(),
         };
-        let q = Query {
-            m: &q_m,
-            map: 1,
-            pose: query_pose,
-            kf: None,
-            reference_kf: Some(qkf),
-            own: Some((&own, &own_points)),
-        };
+        let q = mq.query();
         let cfg = LoopClosingConfig::default();
         // The Sim3 RANSAC alone already places the query camera in the matched map.
         let pairs: Vec<(usize, PointId)> = (0..n).map(|i| (i, pm[i])).collect();
         let initial = sim3_pose(
             &cfg,
-            &geo,
+            geo,
             &q,
-            &own,
-            &own_points,
+            own,
+            own_points,
             &matched,
             &matched.keyframes[&kf],
             &pairs,
@@ -1199,7 +1257,7 @@ mod tests {
             d.translation.vector.norm() < 1e-6 && d.rotation.angle() < 1e-6,
             "{d}"
         );
-        let Verdict::Valid(v) = validate(&cfg, &geo, &q, &matched, &c) else {
+        let Verdict::Valid(v) = validate(&cfg, geo, &q, &matched, &c) else {
             panic!("the similarity is not found");
         };
         assert!((v.scale - 2.0).abs() < 1e-3, "scale {}", v.scale);
@@ -1211,9 +1269,53 @@ mod tests {
         assert!(v.matches.iter().flatten().all(|p| pm.contains(p)));
         // Without the query's map points there is no scale: a rigid alignment.
         let rigid = Query { own: None, ..q };
-        let Verdict::Valid(v) = validate(&cfg, &geo, &rigid, &matched, &c) else {
+        let Verdict::Valid(v) = validate(&cfg, geo, &rigid, &matched, &c) else {
             panic!("PnP finds the pose");
         };
         assert_eq!(v.scale, 1.0);
+    }
+
+    /// Without depth, the last keyframe before a loss holds few points (none of its successors
+    /// triangulated with it): a candidate there is validated on the points of its covisible
+    /// window, which saw the same place.
+    #[test]
+    fn a_monocular_candidate_is_searched_with_its_covisible_window() {
+        let n = 150;
+        let mq = mono_query(n);
+        let cfg = LoopClosingConfig::default();
+        let few = cfg.min_validation_matches as usize - 1;
+        let validated = |linked: bool| {
+            let mut matched = Map::new(0);
+            let pose = Isometry3::identity();
+            let view = mono_view(0, &mq.geo, &pose, &mq.xs, &mq.descriptors);
+            let neighbour = matched.add_keyframe(&view, pose);
+            let last = matched.add_keyframe(&view, pose);
+            for i in 0..n {
+                let p = matched.add_point(neighbour, i, mq.xs[i], 1.2, 8);
+                if i < few {
+                    matched.observe(last, i, p);
+                }
+            }
+            if linked {
+                matched.update_covisibility(last);
+            }
+            // The detector proposes the last keyframe, with no correspondences of its own.
+            let c = Candidate {
+                image: last as u64,
+                score: 1.0,
+                matches: Vec::new(),
+            };
+            validate(&cfg, &mq.geo, &mq.query(), &matched, &c)
+        };
+        let Verdict::Valid(v) = validated(true) else {
+            panic!("the window's points place the query");
+        };
+        assert!((v.scale - 2.0).abs() < 1e-3, "scale {}", v.scale);
+        assert!(v.n_inliers > few, "{} inliers", v.n_inliers);
+        // The keyframe's own points alone are too few.
+        assert!(
+            matches!(validated(false), Verdict::Rejected { .. }),
+            "without the window"
+        );
     }
 }
