@@ -316,13 +316,21 @@ impl StateMachine {
     /// what the rest shows: 0.47-0.62 of fr1_desk's cells are found against 0.32-0.41 of door
     /// C's (mapping's medians 0.56 and 0.65).
     fn fails_appearance(&self, e: &global_optimizer::Expectation) -> bool {
+        let (reobserved, found) = self.appearance_floors();
+        e.expected_cells >= self.cfg.controller.min_expected_cells as usize
+            && e.ratio() < reobserved
+            && found.is_none_or(|f| e.found_share() < f)
+    }
+
+    /// The appearance check's floors on the re-observed and the found shares.
+    fn appearance_floors(&self) -> (f64, Option<f64>) {
         let c = &self.cfg.controller;
         let reobserved = self.mapping_reobserved.iter().map(|s| s.0);
         let found = self.mapping_reobserved.iter().map(|s| s.1);
-        e.expected_cells >= c.min_expected_cells as usize
-            && e.ratio()
-                < appearance_floor(c.min_expectation_ratio, c.expectation_relative, reobserved)
-            && resemblance_floor(c.expectation_relative, found).is_none_or(|f| e.found_share() < f)
+        (
+            appearance_floor(c.min_expectation_ratio, c.expectation_relative, reobserved),
+            resemblance_floor(c.expectation_relative, found),
+        )
     }
 
     /// Localized: track in known space without new keyframes; check the map's expectation.
@@ -368,15 +376,17 @@ impl StateMachine {
         self.flags.consistent_map = self.expectation_failures < c.corrupted_after_frames;
         if !self.flags.consistent_map {
             self.suspects.clear();
+            let (reobserved, found) = self.appearance_floors();
             tracing::info!(
-                "frame {}: the map contradicts the camera for {} frames ({} of {} predicted points behind what the depth sensor sees; {} of {} predicted image cells re-observed, {} more resembled)",
+                "frame {}: the map contradicts the camera for {} frames ({} of {} predicted points behind what the depth sensor sees; {} of {} predicted image cells re-observed, floor {reobserved:.2}; {} more resembled, found floor {})",
                 m.frame,
                 self.expectation_failures,
                 e.depth_contradicted,
                 e.depth_judged(),
                 e.confirmed_cells,
                 e.expected_cells,
-                e.resembled_cells
+                e.resembled_cells,
+                found.map_or("none".to_string(), |f| format!("{f:.2}"))
             );
         }
         // Left the known area: most of what the camera sees is not in the map and no keyframe
