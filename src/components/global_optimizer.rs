@@ -281,7 +281,7 @@ fn apply(map: &mut Map, ids: &[KfId], before: &[Sim3], graph: &PoseGraph) {
 /// sees through where the map says a surface is. Nearer neighbours (occlusion) say nothing.
 ///
 /// Without depth, a predicted cell without an inlier is *resembled* when a keypoint near one of
-/// its predicted points still looks like that point (within [`APPEARANCE_MAX_DISTANCE`]): blur
+/// its predicted points still looks like that point (within `APPEARANCE_MAX_DISTANCE`): blur
 /// or a changed viewpoint kept the tracker from matching it, but the texture the map predicts
 /// is there. A wrong map predicts texture the camera does not see.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
