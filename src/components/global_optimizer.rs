@@ -288,7 +288,7 @@ fn apply(map: &mut Map, ids: &[KfId], before: &[Sim3], graph: &PoseGraph) {
 pub struct Expectation {
     pub expected_cells: usize,
     pub confirmed_cells: usize,
-    /// Expected cells not confirmed, but resembled.
+    /// Expected cells not confirmed, but resembled (without depth readings only; 0 with them).
     pub resembled_cells: usize,
     pub depth_confirmed: usize,
     pub depth_contradicted: usize,
@@ -572,6 +572,8 @@ pub fn expectation(
     let cell = |uv: (f64, f64), px: f64| ((uv.0 / px) as u32, (uv.1 / px) as u32);
     let mut predicted: Vec<(f64, f64)> = Vec::new();
     let mut resembling: BTreeSet<(u32, u32)> = BTreeSet::new();
+    // Only the appearance check without depth asks for resemblance.
+    let judge_texture = m.n_with_depth() == 0;
     let (mut depth_confirmed, mut depth_contradicted) = (0, 0);
     for p in track.visible.iter().filter_map(|id| map.points.get(id)) {
         let pc = Map::in_camera(&track.pose_cw, &p.position);
@@ -580,7 +582,8 @@ pub fn expectation(
         };
         predicted.push((uv.x, uv.y));
         let c = cell((uv.x, uv.y), cell_px);
-        if !resembling.contains(&c)
+        if judge_texture
+            && !resembling.contains(&c)
             && looks_like(&m.grid, &m.keypoints, &m.descriptors, &p.descriptor, uv)
         {
             resembling.insert(c);
