@@ -163,6 +163,49 @@ impl Map {
         self.points.extend(other.points);
     }
 
+    /// What a transaction keeps of the map to revoke it later: every keyframe's pose, units,
+    /// parent and which point each key point saw, and every point; not the key points,
+    /// descriptors, depth or grids (most of a map's memory), which a revocation never restores.
+    pub fn skeleton(&self) -> Map {
+        let keyframes = self
+            .keyframes
+            .iter()
+            .map(|(&id, k)| {
+                let kf = Keyframe {
+                    id,
+                    frame: k.frame,
+                    t: k.t,
+                    pose_cw: k.pose_cw,
+                    twist: k.twist,
+                    keypoints: Vec::new(),
+                    descriptors: Vec::new(),
+                    depth: Vec::new(),
+                    grid: FeatureGrid::new(0, 0, &[]),
+                    points: k.points.clone(),
+                    covisibility: BTreeMap::new(),
+                    parent: k.parent,
+                    units: k.units,
+                    surface: Vec::new(),
+                };
+                (id, kf)
+            })
+            .collect();
+        Map {
+            id: self.id,
+            keyframes,
+            points: self.points.clone(),
+            next_kf: self.next_kf,
+            next_point: self.next_point,
+        }
+    }
+
+    /// Inserts a point made elsewhere (a revocation's copy) under its own id, which must be
+    /// unused in the atlas; the id counter moves past it.
+    pub fn insert_point(&mut self, p: MapPoint) {
+        self.next_point = self.next_point.max(p.id + 1);
+        self.points.insert(p.id, p);
+    }
+
     /// Recomputes what a saved map does not store.
     pub fn rebuild_after_load(&mut self) {
         for kf in self.keyframes.values_mut() {

@@ -281,7 +281,8 @@ struct Recorded {
     /// follows the keyframes' optimised poses (as ORB-SLAM does) and frames of merged maps end
     /// up in the merged frame. Keyframe ids are unique across the atlas.
     relative: Vec<(usize, f64, KfId, Isometry3<f64>)>,
-    poses_discarded: usize,
+    /// Poses that did not stand, and why.
+    discarded: Vec<crate::outputs::DiscardedPose>,
     frame_stats: Vec<crate::outputs::mcap_log::FrameStats>,
     /// The input error that ended the loop (`--strict-input`, or a frame that could not be
     /// processed).
@@ -391,7 +392,10 @@ fn frame_loop(
             // extraction time it took when the file was written.
             let reused = features
                 .as_deref_mut()
-                .filter(|_| perturbed.plan.fault(frame.index).is_none())
+                .filter(|_| {
+                    perturbed.plan.fault(frame.index).is_none()
+                        && perturbed.plan.depth_shift_px.is_none()
+                })
                 .and_then(|f| f.take(frame.index));
             let reused_ms = reused.as_ref().map_or(0.0, |e| e.ms);
             let m = match reused {
@@ -439,10 +443,27 @@ fn frame_loop(
                 rec.failure = Some(e);
                 break;
             }
-            if let Some(from) = out.invalidated_from {
-                let before = rec.relative.len();
-                rec.relative.retain(|r| r.0 < from);
-                rec.poses_discarded += before - rec.relative.len();
+            // A revoked pool loses no pose: the frames tracked across its seam follow the
+            // camera's side of the cut.
+            for r in &out.revocations {
+                rec.relative.retain_mut(|(f, t, kf, rel)| match r.reanchor(*f, *kf, rel) {
+                    None => true,
+                    Some(Some((k, new, _))) => {
+                        (*kf, *rel) = (k, new);
+                        true
+                    }
+                    Some(None) => {
+                        rec.discarded.push(crate::outputs::DiscardedPose {
+                            frame: *f,
+                            t: *t,
+                            reason: format!(
+                                "tracked after pool {}, revoked, with no keyframe of the camera's side to hold it",
+                                r.pool
+                            ),
+                        });
+                        false
+                    }
+                });
             }
             if let Some((rel, _, kf)) = out.pose {
                 rec.relative.push((frame.index, frame.t, kf, rel));
@@ -536,7 +557,11 @@ fn resolve_poses(machine: &StateMachine, rec: &mut Recorded, mcap_log: bool) -> 
     let mut posed: Vec<crate::outputs::mcap_log::PosedFrame> = Vec::new();
     for (frame, t, kf, rel) in &rec.relative {
         let Some((map, k)) = kf_map.get(kf) else {
-            rec.poses_discarded += 1;
+            rec.discarded.push(crate::outputs::DiscardedPose {
+                frame: *frame,
+                t: *t,
+                reason: "its map was discarded: a map lost on the frame after its first holds one view no other frame confirmed (a false frame)".into(),
+            });
             continue;
         };
         // Final's batch refinement may have re-estimated the frame.
@@ -655,7 +680,8 @@ fn summarize(
         pools: machine.atlas.pools.len(),
         pools_rolled_back: machine.atlas.pools.iter().filter(|p| p.rolled_back).count(),
         controller: setup.config.controller.kind.as_str().into(),
-        poses_discarded: fin.rec.poses_discarded,
+        poses_discarded: fin.rec.discarded.len(),
+        discarded_poses: std::mem::take(&mut fin.rec.discarded),
         map_keyframes: machine
             .atlas
             .maps

@@ -184,6 +184,36 @@ impl Tracker {
         self.reference_kf = Some(reference_kf);
     }
 
+    /// The map under the camera was re-cut (a revoked closure, `Atlas::revoke`): the world
+    /// moved by `correction` (old world → new, a loop's; `None`: it did not), the points the
+    /// last frame matched are now `point(id)` (`None`: on the other side of the cut), and the
+    /// reference keyframe is `reference_kf`. The velocity is a camera-to-camera motion and
+    /// stays, rescaled with the camera frame's lengths.
+    pub fn reframe(
+        &mut self,
+        correction: Option<&crate::geometry::Sim3>,
+        point: impl Fn(PointId) -> Option<PointId>,
+        reference_kf: KfId,
+    ) {
+        if let (Some(c), Some(pose)) = (correction, self.last_pose) {
+            let new = crate::geometry::Sim3::from_isometry(&pose).compose(&c.inverse());
+            let mut p = new.to_isometry();
+            p.translation.vector /= new.scale;
+            self.last_pose = Some(p);
+            if let Some(v) = self.velocity.as_mut() {
+                v.translation.vector /= new.scale;
+            }
+        }
+        let mut seen = std::collections::BTreeSet::new();
+        self.last_matches = self
+            .last_matches
+            .iter()
+            .filter_map(|&(i, p)| point(p).map(|q| (i, q)))
+            .filter(|(_, q)| seen.insert(*q))
+            .collect();
+        self.reference_kf = Some(reference_kf);
+    }
+
     /// A frame was not tracked. The last tracked frame and the motion model stay: within the
     /// controller's re-acquisition gap the next frame is predicted across the missing ones
     /// (a black or foreign frame between two good ones costs no more than that frame); after

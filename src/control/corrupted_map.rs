@@ -114,30 +114,21 @@ impl StateMachine {
             }
             self.flags.consistent_map = true;
             self.suspects.clear();
-            // When the newest pool was undone and its query map is back as it was, the camera
-            // resumes from where it was then (Idle re-tracks a short gap in that map); else
-            // its place was only known in the corrupted map, and Idle starts afresh.
-            let newest = self
-                .atlas
-                .pools
-                .iter()
-                .rev()
-                .find(|p| !p.rolled_back)
-                .map(|p| p.id);
-            match self.before_pool.take() {
-                Some(b)
-                    if self.atlas.pools[b.pool as usize].rolled_back
-                        && newest.is_none_or(|n| n < b.pool)
-                        && self.atlas.maps.contains_key(&b.at.map) =>
-                {
-                    self.resume_tracking(b.at)
-                }
-                _ => {
-                    self.tracker.lose();
-                    self.current = None;
-                    self.last_tracked_t = None;
+            // The maps the recovery cut are optimised again without the revoked links (those
+            // the optimiser's own recovery re-checked already are not).
+            let mut maps: BTreeSet<MapId> = BTreeSet::new();
+            for r in &self.revocations {
+                maps.extend([r.near_map, r.far_map]);
+            }
+            for m in maps {
+                if self.atlas.maps.contains_key(&m) && !self.reoptimized.contains(&m) {
+                    self.pose_graph_only(m);
                 }
             }
+            self.reoptimized.clear();
+            // Nothing was discarded: the camera is where it was, in its side's map, and Idle
+            // re-tracks this frame there when the gap allows (else it starts a new map).
+            self.tracker.lose();
         } else {
             let msg = "the map is inconsistent and no closure pool explains it: stopping; \
                        the atlas is marked corrupted";
@@ -265,11 +256,17 @@ impl StateMachine {
                 continue;
             }
             let recovered = if from_optimizer {
-                let maps: Vec<MapId> = rec
-                    .maps()
+                let _ = rec;
+                let maps: BTreeSet<MapId> = self
+                    .revocations
+                    .last()
+                    .map(|r| [r.near_map, r.far_map].into_iter().collect())
+                    .unwrap_or_default();
+                let maps: Vec<MapId> = maps
                     .into_iter()
                     .filter(|m| self.atlas.maps.contains_key(m))
                     .collect();
+                self.reoptimized.extend(maps.iter().copied());
                 maps.into_iter()
                     .all(|m| self.global_optimization(m, None).consistent)
             } else {
@@ -282,9 +279,12 @@ impl StateMachine {
         false
     }
 
-    /// Rolls pool `p` back (and the later pools built on it): their alignments are refused
-    /// from now on, their anchors marked look-alikes, their rows in closures.csv rolled back.
-    /// False when the pool cannot be undone.
+    /// Revokes pool `p` (see `Atlas::revoke`): its links go, and with it the later pools whose
+    /// links cross the same seam; every keyframe, point and pose stays. Their alignments are
+    /// refused from now on, their anchors are look-alikes, their rows in closures.csv rolled
+    /// back. The camera goes on where it is, in the map of its side of the cut, and the frames
+    /// tracked across the seam follow it (`Revocation::reanchor`). False when the pool cannot
+    /// be revoked.
     pub(super) fn undo_pool(&mut self, p: PoolId) -> bool {
         if !self
             .atlas
@@ -294,58 +294,94 @@ impl StateMachine {
         {
             return false;
         }
-        let before = self.atlas.keyframe_ids();
-        let undone = match self.atlas.rollback(p) {
-            Ok(u) => u,
+        let camera_map = self.current;
+        let orb = (self.cfg.orb.scale_factor, self.cfg.orb.n_levels);
+        let r = match self.atlas.revoke(p, orb) {
+            Ok(r) => r,
             Err(e) => {
-                tracing::warn!("rollback of pool {p} failed: {e}");
+                tracing::warn!("revocation of pool {p} failed: {e}");
                 return false;
             }
         };
-        for u in &undone {
-            let r = &self.atlas.pools[u.pool as usize];
-            match &r.kind {
-                PoolKind::Merge {
-                    into,
-                    from,
-                    alignment,
-                } => {
-                    let s: Sim3 = alignment.into();
-                    self.reloc_pool.refuse(*from, *into, s);
-                    self.loop_pool.refuse(*from, *into, s);
+        for u in std::iter::once(p).chain(r.crossing.iter().copied()) {
+            match &self.atlas.pools[u as usize].kind {
+                // The near side stands where the wrong alignment put it: that alignment is
+                // the identity between the two maps now.
+                PoolKind::Merge { .. } | PoolKind::Relocalization { .. } => {
+                    self.reloc_pool
+                        .refuse(r.near_map, r.far_map, Sim3::identity());
+                    self.loop_pool
+                        .refuse(r.near_map, r.far_map, Sim3::identity());
                 }
-                PoolKind::Loop { map, correction } => {
+                PoolKind::Loop { correction, .. } => {
                     let s: Sim3 = correction.into();
-                    self.loop_pool.refuse(*map, *map, s);
+                    self.loop_pool.refuse(r.far_map, r.far_map, s);
                 }
-                // No alignment to refuse: its matched keyframes become look-alikes below.
-                PoolKind::Relocalization { .. } => {}
             }
-            self.mark_aliased(u.pool);
-            // Frames tracked after the pool was applied are placed by it; the pool's own frame
-            // was tracked before (relative to a keyframe the rollback restores) and stands.
-            if let Some(&(_, f)) = self.pool_frames.iter().find(|(q, _)| *q == u.pool) {
-                let after = f + 1;
-                self.invalidated_from = Some(self.invalidated_from.map_or(after, |x| x.min(after)));
-                // Their observations go too: Final may follow in this very step.
-                self.frame_obs.forget_from(after);
-            }
+            self.mark_aliased(u);
             for row in self.closures.iter_mut() {
-                if row.pool == Some(u.pool) {
+                if row.pool == Some(u) {
                     row.verdict = "rolled-back".into();
                 }
             }
-            tracing::info!(
-                "pool {} rolled back: maps {:?} restored, {} keyframes discarded",
-                u.pool,
-                u.maps,
-                u.discarded_keyframes
-            );
         }
-        let after = self.atlas.keyframe_ids();
-        for gone in before.difference(&after) {
-            self.detector.remove(*gone as u64);
+        tracing::info!(
+            "pool {p} revoked{}: map {} (near side) and map {} (far side), {} links cut, {} points given back, {} keyframes moved back, nothing discarded",
+            if r.crossing.is_empty() {
+                String::new()
+            } else {
+                format!(" with pools {:?}, whose links crossed its seam", r.crossing)
+            },
+            r.near_map,
+            r.far_map,
+            r.links_cut,
+            r.points_restored,
+            r.keyframes_moved
+        );
+        // The camera goes on in its side's map, where it is.
+        if camera_map.is_some_and(|c| c == r.far_map || c == r.near_map) {
+            let cam = r.camera_map();
+            if self.current != Some(cam) {
+                self.merger.started(r.frame);
+            }
+            self.current = Some(cam);
+            self.atlas.activate(cam);
+            let map = &self.atlas.maps[&cam];
+            // On the camera's side: a loop's far side is in the same map, but the camera is
+            // not where the loop put it.
+            let on_side = |k: &KfId| {
+                map.keyframes.contains_key(k) && (cam != r.near_map || !r.far.contains_key(k))
+            };
+            let reference = self
+                .tracker
+                .reference_kf
+                .filter(on_side)
+                .or_else(|| r.near_anchors.iter().rev().map(|a| a.kf).find(on_side))
+                .or_else(|| {
+                    map.keyframes
+                        .values()
+                        .filter(|k| on_side(&k.id))
+                        .max_by_key(|k| (k.frame, k.id))
+                        .map(|k| k.id)
+                });
+            if let Some(reference) = reference {
+                let correction = r.near_correction.filter(|_| cam == r.near_map);
+                self.tracker.reframe(
+                    correction.as_ref(),
+                    |pt| {
+                        let pt = if map.points.contains_key(&pt) && !r.far_points.contains(&pt) {
+                            pt
+                        } else {
+                            *r.copies.get(&pt)?
+                        };
+                        (map.points.contains_key(&pt) && !r.far_points.contains(&pt)).then_some(pt)
+                    },
+                    reference,
+                );
+            }
         }
+        self.frame_obs.reanchor(&r, &self.atlas);
+        self.revocations.push(r);
         true
     }
 }

@@ -8,6 +8,7 @@
 //! closest is forgotten (its pose still follows its keyframe, as every frame's does), so the
 //! frames kept stay spread over the whole time the keyframe was seen.
 
+use crate::atlas::{Atlas, Revocation};
 use crate::components::map_merger::FrameObservations;
 use crate::map::KfId;
 use std::collections::{BTreeMap, BTreeSet};
@@ -62,13 +63,55 @@ impl FrameStore {
         }
     }
 
-    /// Forgets the frames from `first` on (a rollback undid what placed them).
-    pub fn forget_from(&mut self, first: usize) {
-        let gone = self.frames.split_off(&first);
-        for (f, o) in gone {
-            if let Some(s) = self.by_keyframe.get_mut(&o.kf) {
-                s.remove(&f);
+    /// Pool `r.pool` was revoked: the frames tracked across its seam follow the camera's side
+    /// ([`Revocation::reanchor`]), and the frames of the maps it cut keep only observations
+    /// of points in their own map (a point of the other side becomes its copy there, when
+    /// the revocation made one).
+    pub fn reanchor(&mut self, r: &Revocation, atlas: &Atlas) {
+        let cut = [r.near_map, r.far_map];
+        let frames: Vec<usize> = self.frames.keys().copied().collect();
+        for f in frames {
+            let obs = self.frames.get_mut(&f).expect("listed");
+            match r.reanchor(f, obs.kf, &obs.rel) {
+                None => {}
+                Some(Some((k, rel, ratio))) => {
+                    if let Some(s) = self.by_keyframe.get_mut(&obs.kf) {
+                        s.remove(&f);
+                    }
+                    self.by_keyframe.entry(k).or_default().insert(f);
+                    obs.kf = k;
+                    obs.rel = rel;
+                    for i in 3..6 {
+                        obs.twist[i] *= ratio;
+                    }
+                }
+                Some(None) => {
+                    if let Some(s) = self.by_keyframe.get_mut(&obs.kf) {
+                        s.remove(&f);
+                    }
+                    self.frames.remove(&f);
+                    continue;
+                }
             }
+            let Some(map) = cut
+                .iter()
+                .filter_map(|m| atlas.maps.get(m))
+                .find(|m| m.keyframes.contains_key(&obs.kf))
+            else {
+                continue;
+            };
+            obs.obs.retain_mut(|o| {
+                if map.points.contains_key(&o.point) {
+                    return true;
+                }
+                match r.copies.get(&o.point) {
+                    Some(c) if map.points.contains_key(c) => {
+                        o.point = *c;
+                        true
+                    }
+                    _ => false,
+                }
+            });
         }
     }
 
@@ -123,8 +166,6 @@ mod tests {
         assert!(kept.iter().any(|&f| f < 10) && kept.iter().filter(|&&f| f >= 100).count() >= 2);
         assert_eq!(s.forgotten, 16);
         assert!(s.all().contains_key(&50));
-        s.forget_from(100);
-        assert!(s.all().keys().all(|&f| f < 100));
     }
 
     #[test]

@@ -89,12 +89,10 @@ impl StateMachine {
             }
         };
         let pool = self.atlas.begin_pool(kind, m.frame, m.t);
-        self.before_pool = self.tracking_at().map(|at| super::BeforePool { pool, at });
         for e in edges.iter_mut() {
             e.pool = pool;
         }
         self.atlas.add_edges(pool, edges);
-        self.pool_frames.push((pool, m.frame));
         if into != from {
             if let Err(e) = self.atlas.merge(into, from, &acc.alignment) {
                 tracing::warn!("merge failed: {e}");
@@ -214,8 +212,6 @@ impl StateMachine {
         let pool = self
             .atlas
             .begin_pool(PoolKind::Relocalization { map }, m.frame, m.t);
-        self.before_pool = None;
-        self.pool_frames.push((pool, m.frame));
         self.settle_pending_rows(&acc, "accepted", Some(pool));
         self.merger.closed(m.frame);
         self.start_localized();
@@ -416,6 +412,31 @@ impl StateMachine {
         self.cond.left_known_area =
             self.flags.consistent_map && (weak || self.unknown_view_frames >= c.left_after_frames);
         Some(pose)
+    }
+
+    /// The pose graph of map `map` optimised with its standing closure edges, nothing else: a
+    /// revocation's re-optimisation (the map was consistent before the revoked pool; its
+    /// points keep their local BA).
+    pub(super) fn pose_graph_only(&mut self, map: MapId) -> GlobalReport {
+        let closures = self.atlas.closure_edges(map);
+        let Some(m) = self.atlas.maps.get_mut(&map) else {
+            return GlobalReport {
+                consistent: true,
+                ..Default::default()
+            };
+        };
+        let report =
+            global_optimizer::optimize_map(&self.cfg.loop_closing, m, &closures, &[], self.mono);
+        tracing::info!(
+            "pose graph of map {map} after the revocation: {} keyframes, {} closure edges, cost {:.1} -> {:.1}, max chi2/dof closure {:.2} odometry {:.2}",
+            report.keyframes,
+            report.closure_edges,
+            report.initial_cost,
+            report.final_cost,
+            report.max_closure_nchi2,
+            report.max_odometry_nchi2
+        );
+        report
     }
 
     /// The global optimizer on map `map` with its standing closure edges; a full BA follows

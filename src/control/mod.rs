@@ -45,8 +45,9 @@ pub struct StepOutput {
     /// When the frame was tracked: its pose relative to its reference keyframe
     /// (`T_cw · T_kw⁻¹`), the map and the keyframe.
     pub pose: Option<(Isometry3<f64>, MapId, KfId)>,
-    /// Frames from this index on were tracked on a map that a rollback just discarded.
-    pub invalidated_from: Option<usize>,
+    /// Pools revoked on this step: the frames tracked across their seams are re-anchored with
+    /// them (`Revocation::reanchor`).
+    pub revocations: Vec<crate::atlas::Revocation>,
 }
 
 /// A transition as states.csv records it.
@@ -76,13 +77,6 @@ struct LostPlace {
     keyframes: Vec<KfId>,
     /// Stamp of the last frame tracked before the loss.
     lost_t: f64,
-}
-
-/// See [`StateMachine::before_pool`].
-#[derive(Clone)]
-struct BeforePool {
-    pool: u32,
-    at: TrackingAt,
 }
 
 /// Internal conditions besides the paper's four flags.
@@ -150,11 +144,10 @@ pub struct StateMachine {
     aliased: std::collections::BTreeSet<KfId>,
     /// Every closure or relocalization candidate, for closures.csv.
     pub closures: Vec<ClosureRow>,
-    /// The first frame each standing pool's map state was used from (for invalidation).
-    pool_frames: Vec<(u32, usize)>,
-    /// The tracker and its map as they were just before the newest pool was applied: when
-    /// that pool is rolled back at once, tracking resumes there instead of in a new map.
-    before_pool: Option<BeforePool>,
+    /// Pools revoked on this step, for its output.
+    revocations: Vec<crate::atlas::Revocation>,
+    /// Maps a recovery has optimised again already.
+    reoptimized: std::collections::BTreeSet<MapId>,
     /// Tracking before the newest map was started within a short gap (see
     /// `discard_unconfirmed`).
     resume: Option<TrackingAt>,
@@ -181,7 +174,6 @@ pub struct StateMachine {
     /// How Final's refinement ended when it was cut short (a user stop's time limit or second
     /// signal), for summary.json.
     pub refinement_cut: Option<String>,
-    invalidated_from: Option<usize>,
     mono: bool,
     /// Inliers of the tracker's pose on the latest step's frame, if the tracker ran on it.
     pub track_inliers: Option<usize>,
@@ -234,8 +226,8 @@ impl StateMachine {
             contradicting_kf: None,
             aliased: Default::default(),
             closures: Vec::new(),
-            pool_frames: Vec::new(),
-            before_pool: None,
+            revocations: Vec::new(),
+            reoptimized: Default::default(),
             stop_reason: None,
             retracked: None,
             resume: None,
@@ -247,7 +239,6 @@ impl StateMachine {
             refined_frames: BTreeMap::new(),
             refinement_deadline: None,
             refinement_cut: None,
-            invalidated_from: None,
             mono: config.sequence.mono,
             track_inliers: None,
             track_matched: Vec::new(),
@@ -307,7 +298,7 @@ impl StateMachine {
 
     /// Processes one measurement in the current state.
     pub fn step(&mut self, m: &Measurement, timing: &mut Timing) -> StepOutput {
-        self.invalidated_from = None;
+        self.revocations.clear();
         self.pending_obs = None;
         self.keyframe_made = false;
         self.retracked = None;
@@ -343,7 +334,7 @@ impl StateMachine {
             transitions,
             flags: self.flags,
             pose,
-            invalidated_from: self.invalidated_from,
+            revocations: std::mem::take(&mut self.revocations),
         }
     }
 
@@ -426,7 +417,7 @@ impl StateMachine {
             transitions,
             flags: self.flags,
             pose: None,
-            invalidated_from: None,
+            revocations: Vec::new(),
         }
     }
 }

@@ -192,6 +192,14 @@ pub struct UserStop {
     pub refinement: String,
 }
 
+/// A tracked frame whose pose did not stand, and why (summary.json's `discarded_poses`).
+#[derive(Debug, Clone, Serialize)]
+pub struct DiscardedPose {
+    pub frame: usize,
+    pub t: f64,
+    pub reason: String,
+}
+
 /// `summary.json`.
 #[derive(Debug, Clone, Serialize)]
 pub struct Summary {
@@ -218,6 +226,8 @@ pub struct Summary {
     pub controller: String,
     /// Frames whose pose was discarded because it was tracked on a map a rollback undid.
     pub poses_discarded: usize,
+    /// Every pose discarded, and why.
+    pub discarded_poses: Vec<DiscardedPose>,
     /// Keyframes per map at the end.
     pub map_keyframes: BTreeMap<u32, usize>,
     /// Why the machine stopped early (corrupted map that no pool explains), if it did.

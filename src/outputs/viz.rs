@@ -312,7 +312,7 @@ mod imp {
                 machine.atlas.maps.len(),
                 machine.atlas.pools.len(),
             );
-            if key != self.atlas_key || out.invalidated_from.is_some() {
+            if key != self.atlas_key || !out.revocations.is_empty() {
                 self.atlas_key = key;
                 self.log_maps(machine)?;
             }

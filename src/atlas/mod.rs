@@ -3,10 +3,10 @@
 //!
 //! A new map starts whenever tracking is re-acquired after a loss; a validated relocalization
 //! merges two maps; a validated loop closure corrects one. Each accepted pool is a
-//! *transaction*: the atlas keeps a snapshot of the maps it touched, so that the Corrupted Map
-//! state can undo it (paper section V: "the wrong loop closures are removed and the graph is
-//! optimized again"). Undo restores the maps exactly as they were before the pool; whatever was
-//! built on top of a wrong pool was built on a corrupted map and goes with it.
+//! *transaction*: the atlas keeps a skeleton of the maps it touched (poses, points and which
+//! key point saw which point), so that the Corrupted Map state can revoke it (paper section V:
+//! "the wrong loop closures are removed and the graph is optimized again"). Revoking removes
+//! the pool's links and keeps everything else: see [`revoke`].
 //!
 //! Keyframe and point ids are unique across the whole atlas (one high-water mark), so maps can
 //! be merged by moving entries and a rolled-back id is never handed out again.
@@ -18,6 +18,9 @@ use nalgebra::{Isometry3, Matrix6, Translation3, UnitQuaternion};
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
+
+pub mod revoke;
+pub use revoke::Revocation;
 
 pub type MapId = u32;
 pub type PoolId = u32;
@@ -139,10 +142,14 @@ pub struct PoolRecord {
     pub t: f64,
     pub edges: Vec<ClosureEdge>,
     pub rolled_back: bool,
-    /// The touched maps as they were before the pool (not saved: a loaded atlas cannot undo
-    /// the previous session's pools).
+    /// The touched maps as they were before the pool, as skeletons ([`Map::skeleton`]; not
+    /// saved: a loaded atlas cannot revoke the previous session's pools).
     #[serde(skip)]
-    undo: Vec<Map>,
+    before: Vec<Map>,
+    /// How the world of the maps the pool joined has moved since (a later merge into another
+    /// map): the skeletons' world → the current one.
+    #[serde(skip)]
+    reframed: Option<SimilarityRecord>,
 }
 
 impl PoolRecord {
@@ -156,7 +163,7 @@ impl PoolRecord {
 
     /// Whether this pool can still be undone in this session.
     pub fn undoable(&self) -> bool {
-        !self.rolled_back && !self.undo.is_empty()
+        !self.rolled_back && !self.before.is_empty()
     }
 
     /// For a merge that can still be undone: the keyframes of map `into` and of map `from`
@@ -167,23 +174,13 @@ impl PoolRecord {
             return None;
         };
         let kfs = |id: MapId| {
-            self.undo
+            self.before
                 .iter()
                 .find(|m| m.id == id)
                 .map(|m| m.keyframes.keys().copied().collect())
         };
         Some((kfs(into)?, kfs(from)?))
     }
-}
-
-/// What an undo restored.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Rollback {
-    pub pool: PoolId,
-    /// The maps as they are again.
-    pub maps: Vec<MapId>,
-    /// Keyframes built on top of the pool, discarded with it.
-    pub discarded_keyframes: usize,
 }
 
 /// Every map of the run.
@@ -345,12 +342,13 @@ impl Atlas {
             t,
             edges: Vec::new(),
             rolled_back: false,
-            undo: Vec::new(),
+            before: Vec::new(),
+            reframed: None,
         };
-        rec.undo = rec
+        rec.before = rec
             .maps()
             .iter()
-            .filter_map(|m| self.maps.get(m).cloned())
+            .filter_map(|m| self.maps.get(m).map(Map::skeleton))
             .collect();
         self.pools.push(rec);
         id
@@ -440,6 +438,18 @@ impl Atlas {
             self.maps.insert(from, src);
             return Err(Error::invalid(format!("merge: no map {into}")));
         };
+        // Pools whose maps are in `from` now live in `into`'s world.
+        for p in self.pools.iter_mut().filter(|p| p.undoable()) {
+            let inside = p
+                .before
+                .iter()
+                .flat_map(|m| m.keyframes.keys())
+                .any(|k| src.keyframes.contains_key(k));
+            if inside {
+                let old: Sim3 = p.reframed.as_ref().map_or(Sim3::identity(), Sim3::from);
+                p.reframed = Some((&s.compose(&old)).into());
+            }
+        }
         let src = transformed(src, s);
         dst.absorb(src);
         self.refresh_high_water();
@@ -449,58 +459,6 @@ impl Atlas {
     /// The most recent pool that stands and can be undone.
     pub fn last_undoable_pool(&self) -> Option<PoolId> {
         self.pools.iter().rev().find(|p| p.undoable()).map(|p| p.id)
-    }
-
-    /// Undoes pool `pool`: the maps it touched are restored as they were before it. Pools
-    /// accepted later that touch the same maps are undone first (they were built on it).
-    pub fn rollback(&mut self, pool: PoolId) -> Result<Vec<Rollback>> {
-        let Some(rec) = self.pools.get(pool as usize) else {
-            return Err(Error::invalid(format!("rollback: no pool {pool}")));
-        };
-        if !rec.undoable() {
-            return Err(Error::invalid(format!(
-                "rollback: pool {pool} cannot be undone (already undone, or from a loaded session)"
-            )));
-        }
-        let mut done = Vec::new();
-        // Later pools that share a map (directly or through a merge) go first, newest first.
-        let mut touched: std::collections::BTreeSet<MapId> = rec.maps().into_iter().collect();
-        let mut later: Vec<PoolId> = Vec::new();
-        for p in self.pools.iter().skip(pool as usize + 1) {
-            if p.undoable() && p.maps().iter().any(|m| touched.contains(m)) {
-                touched.extend(p.maps());
-                later.push(p.id);
-            }
-        }
-        for p in later.into_iter().rev() {
-            done.push(self.undo_one(p));
-        }
-        done.push(self.undo_one(pool));
-        self.refresh_high_water();
-        Ok(done)
-    }
-
-    fn undo_one(&mut self, pool: PoolId) -> Rollback {
-        let rec = &mut self.pools[pool as usize];
-        rec.rolled_back = true;
-        let snapshots = std::mem::take(&mut rec.undo);
-        let maps_now: Vec<MapId> = rec.maps();
-        let before: usize = maps_now
-            .iter()
-            .filter_map(|m| self.maps.get(m))
-            .map(|m| m.keyframes.len())
-            .sum();
-        let restored: usize = snapshots.iter().map(|m| m.keyframes.len()).sum();
-        let mut ids = Vec::new();
-        for snap in snapshots {
-            ids.push(snap.id);
-            self.maps.insert(snap.id, snap);
-        }
-        Rollback {
-            pool,
-            maps: ids,
-            discarded_keyframes: before.saturating_sub(restored),
-        }
     }
 
     /// Writes the atlas (versioned, checksummed, atomically).
@@ -619,7 +577,7 @@ impl Atlas {
 }
 
 /// `map` expressed in another world frame: `s` maps its world coordinates to the new ones.
-fn transformed(mut map: Map, s: &Sim3) -> Map {
+pub(crate) fn transformed(mut map: Map, s: &Sim3) -> Map {
     let rot = UnitQuaternion::from_rotation_matrix(&s.rotation);
     for kf in map.keyframes.values_mut() {
         // Camera centre and orientation move with the world; T'_cw = [R_cw Rᵀ | −R'_cw c'].
@@ -804,19 +762,138 @@ mod tests {
         assert_eq!(crossed.get(&across), Some(&vec![merge]));
         assert_eq!(crossed.get(&from_merged), Some(&vec![merge]));
         assert_eq!(crossed.get(&same_side), None);
-        // Once the merge is undone, nothing is across it.
-        atlas.rollback(merge).unwrap();
+        // Once the merge is revoked, nothing is across it.
+        atlas.revoke(merge, ORB).unwrap();
         assert!(atlas.loops_across_merges().is_empty());
     }
 
+    const ORB: (f64, u32) = (1.2, 8);
+
+    /// Every map's keyframes and points reference each other consistently.
+    fn links_hold(atlas: &Atlas) {
+        for m in atlas.maps.values() {
+            m.check_links()
+                .unwrap_or_else(|e| panic!("map {}: {e}", m.id));
+        }
+    }
+
     #[test]
-    fn rollback_restores_the_maps_and_undoes_later_pools_first() {
+    fn revoking_a_merge_splits_the_map_and_keeps_what_was_made_since() {
         let mut atlas = Atlas::new();
         let a = small_map(&mut atlas, 0);
         let b = small_map(&mut atlas, 1);
-        let before_a = atlas.maps[&a].keyframes.len();
+        let ka = *atlas.maps[&a].keyframes.keys().next().unwrap();
+        let kb = *atlas.maps[&b].keyframes.keys().next().unwrap();
+        let pa: Vec<PointId> = atlas.maps[&a].points.keys().copied().collect();
         let p0 = merged_at_frame_5(&mut atlas, a, b);
-        atlas
+        atlas.add_edges(
+            p0,
+            [ClosureEdge::new(
+                p0,
+                kb,
+                ka,
+                &Sim3::identity(),
+                (1.0, 1.0),
+                Matrix6::identity(),
+            )],
+        );
+        // After the merge the camera (map b's) maps on, seeing map a's points: one key point
+        // through a point of its own, one through a's.
+        let map = atlas.maps.get_mut(&a).unwrap();
+        let later = map.add_keyframe(&measurement(6), Isometry3::translation(0.2, 0.0, 0.0));
+        map.observe(later, 0, pa[0]);
+        let own = map.add_point(later, 1, Vector3::new(0.5, 0.0, 2.0), 1.2, 8);
+        // ... and a's keyframe was fused with a point of b's side (loop fusion).
+        let pb0 = *atlas.maps[&a]
+            .points
+            .iter()
+            .find(|(_, p)| p.first_kf == kb)
+            .unwrap()
+            .0;
+        let map = atlas.maps.get_mut(&a).unwrap();
+        map.replace_point(pa[1], pb0);
+        // A later loop on the camera's side stands after the revocation.
+        let p1 = atlas.begin_pool(
+            PoolKind::Loop {
+                map: a,
+                correction: (&Sim3::identity()).into(),
+            },
+            7,
+            7.0,
+        );
+        let e = ClosureEdge::new(
+            p1,
+            later,
+            kb,
+            &Sim3::identity(),
+            (1.0, 1.0),
+            Matrix6::identity(),
+        );
+        atlas.add_edges(p1, [e]);
+        let keyframes = atlas.n_keyframes();
+        links_hold(&atlas);
+
+        let r = atlas.revoke(p0, ORB).unwrap();
+        links_hold(&atlas);
+        assert_eq!(atlas.maps.len(), 2);
+        assert_eq!(atlas.n_keyframes(), keyframes, "no keyframe is lost");
+        assert_eq!((r.far_map, r.near_map), (a, b), "{r:?}");
+        assert!(atlas.maps[&a].keyframes.contains_key(&ka));
+        assert!(atlas.maps[&b].keyframes.contains_key(&kb));
+        assert!(
+            atlas.maps[&b].keyframes.contains_key(&later),
+            "made by the camera: near"
+        );
+        assert!(atlas.maps[&b].points.contains_key(&own));
+        // The camera's key point that saw a's point sees a copy of it on its side.
+        let copy = r.copies[&pa[0]];
+        assert_eq!(atlas.maps[&b].keyframes[&later].points[0], Some(copy));
+        assert!(atlas.maps[&a].points.contains_key(&pa[0]));
+        assert!(
+            !atlas.maps[&a].points[&pa[0]]
+                .observations
+                .contains_key(&later)
+        );
+        // a's key point fused with b's point gets its own point back.
+        assert!(
+            atlas.maps[&a].points.contains_key(&pa[1]),
+            "the fused point is given back"
+        );
+        assert_eq!(atlas.maps[&a].keyframes[&ka].points[1], Some(pa[1]));
+        assert!(!atlas.maps[&b].points[&pb0].observations.contains_key(&ka));
+        assert_eq!(r.points_restored, 1);
+        assert!(atlas.pools[p0 as usize].rolled_back);
+        assert!(
+            !atlas.pools[p1 as usize].rolled_back,
+            "a pool of one side stands"
+        );
+        assert!(atlas.revoke(p0, ORB).is_err(), "a pool is revoked once");
+        // A frame tracked after the merge against a's keyframe follows the camera's side.
+        let rel = Isometry3::translation(0.0, 0.1, 0.0);
+        let abs = rel * atlas.maps[&a].keyframes[&ka].pose_cw;
+        let (k, rel2, _) = r.reanchor(6, ka, &rel).unwrap().unwrap();
+        assert_eq!(k, later);
+        let abs2 = rel2 * atlas.maps[&b].keyframes[&later].pose_cw;
+        assert!((abs2.translation.vector - abs.translation.vector).norm() < 1e-12);
+        assert!(
+            r.reanchor(4, ka, &rel).is_none(),
+            "before the merge: a's own frame"
+        );
+        // New ids never reuse any.
+        atlas.activate(b);
+        let m = atlas.maps.get_mut(&b).unwrap();
+        let k = m.add_keyframe(&measurement(8), Isometry3::identity());
+        assert!(k > later);
+    }
+
+    #[test]
+    fn a_later_pool_across_the_seam_is_revoked_with_the_merge() {
+        let mut atlas = Atlas::new();
+        let a = small_map(&mut atlas, 0);
+        let b = small_map(&mut atlas, 1);
+        let ka = *atlas.maps[&a].keyframes.keys().next().unwrap();
+        let p0 = merged_at_frame_5(&mut atlas, a, b);
+        let later = atlas
             .maps
             .get_mut(&a)
             .unwrap()
@@ -829,24 +906,89 @@ mod tests {
             7,
             7.0,
         );
-        assert_eq!(atlas.last_undoable_pool(), Some(p1));
-        let undone = atlas.rollback(p0).unwrap();
-        assert_eq!(undone.len(), 2, "{undone:?}");
-        assert_eq!(undone[0].pool, p1);
-        assert_eq!(undone[1].pool, p0);
-        assert_eq!(undone[1].discarded_keyframes, 1);
-        assert_eq!(atlas.maps.len(), 2);
-        assert_eq!(atlas.maps[&a].keyframes.len(), before_a);
-        assert!(atlas.rollback(p0).is_err(), "a pool is undone once");
-        assert_eq!(atlas.last_undoable_pool(), None);
-        // New ids never reuse the discarded keyframe's.
-        atlas.activate(a);
-        let k = atlas
-            .maps
-            .get_mut(&a)
-            .unwrap()
-            .add_keyframe(&measurement(8), Isometry3::identity());
-        assert!(k >= 3, "id {k} reused");
+        let e = ClosureEdge::new(
+            p1,
+            later,
+            ka,
+            &Sim3::identity(),
+            (1.0, 1.0),
+            Matrix6::identity(),
+        );
+        atlas.add_edges(p1, [e]);
+        let r = atlas.revoke(p0, ORB).unwrap();
+        assert_eq!(r.crossing, vec![p1]);
+        assert!(atlas.pools[p1 as usize].rolled_back);
+        assert_eq!(atlas.n_keyframes(), 3);
+    }
+
+    /// A loop's correction bent the map; revoked, every keyframe is back where it was and
+    /// the keyframe made since follows the one that recognised the place.
+    #[test]
+    fn revoking_a_loop_moves_its_correction_back_and_keeps_what_followed() {
+        let mut atlas = Atlas::new();
+        let a = small_map(&mut atlas, 0);
+        let map = atlas.maps.get_mut(&a).unwrap();
+        let first = *map.keyframes.keys().next().unwrap();
+        let q = map.add_keyframe(&measurement(1), Isometry3::translation(1.0, 0.0, 0.0));
+        let qp = map.add_point(q, 4, Vector3::new(1.0, 0.5, 3.0), 1.2, 8);
+        let before_q = map.keyframes[&q].pose_cw;
+        let correction = Sim3 {
+            rotation: Rotation3::from_euler_angles(0.0, 0.3, 0.0),
+            translation: Vector3::new(0.5, 0.0, 0.0),
+            scale: 1.0,
+        };
+        let p = atlas.begin_pool(
+            PoolKind::Loop {
+                map: a,
+                correction: (&correction).into(),
+            },
+            2,
+            2.0,
+        );
+        let e = ClosureEdge::new(
+            p,
+            q,
+            first,
+            &Sim3::identity(),
+            (1.0, 1.0),
+            Matrix6::identity(),
+        );
+        atlas.add_edges(p, [e]);
+        // The loop's optimisation moved the query keyframe and its point.
+        let map = atlas.maps.get_mut(&a).unwrap();
+        let k = map.keyframes.get_mut(&q).unwrap();
+        move_keyframe_for_test(k, &correction);
+        let pt = map.points.get_mut(&qp).unwrap();
+        pt.position = correction.transform_point(&pt.position);
+        let in_q = map.keyframes[&q].pose_cw * Point3::from(map.points[&qp].position);
+        // The camera made a keyframe after, 0.2 m on from the corrected query keyframe.
+        let after_pose = Isometry3::translation(0.0, 0.0, -0.2) * map.keyframes[&q].pose_cw;
+        let after = map.add_keyframe(&measurement(3), after_pose);
+        let rel_after = after_pose * map.keyframes[&q].pose_cw.inverse();
+
+        let r = atlas.revoke(p, ORB).unwrap();
+        links_hold(&atlas);
+        assert_eq!(atlas.maps.len(), 1);
+        assert_eq!(atlas.n_keyframes(), 3);
+        let map = &atlas.maps[&a];
+        let back = map.keyframes[&q].pose_cw;
+        assert!((back.translation.vector - before_q.translation.vector).norm() < 1e-9);
+        assert!(back.rotation.angle_to(&before_q.rotation) < 1e-9);
+        let rel_now = map.keyframes[&after].pose_cw * back.inverse();
+        assert!((rel_now.translation.vector - rel_after.translation.vector).norm() < 1e-9);
+        let in_q_now = back * Point3::from(map.points[&qp].position);
+        assert!(
+            (in_q_now - in_q).norm() < 1e-9,
+            "a point moves with its keyframe"
+        );
+        assert_eq!(r.keyframes_moved, 3);
+        assert!(r.far.contains_key(&first));
+    }
+
+    fn move_keyframe_for_test(k: &mut crate::map::Keyframe, c: &Sim3) {
+        let centre = c.transform_point(&k.center());
+        let r_cw = k.pose_cw.rotation * UnitQuaternion::from_rotation_matrix(&c.rotation).inverse();
+        k.pose_cw = Isometry3::from_parts(Translation3::from(-(r_cw * centre)), r_cw);
     }
 
     #[test]
