@@ -4,7 +4,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand};
 use homing::config::{Config, ControllerKind};
 use homing::eval::{self, Alignment, RpeUnit};
-use homing::io::perturb::{DropSpec, FaultRate, FaultSpec, PerturbationSpec};
+use homing::io::perturb::{DepthShift, DropSpec, FaultRate, FaultSpec, PerturbationSpec};
 use homing::io::tum::read_trajectory;
 use homing::system::{RunOptions, run};
 use std::path::PathBuf;
@@ -338,7 +338,15 @@ struct RunArgs {
     /// Each frame becomes a KIND fault with probability P (KIND:P). Repeatable.
     #[arg(long = "fault-rate", value_name = "KIND:P")]
     fault_rates: Vec<FaultRate>,
-    /// Seed for random faults.
+    /// Depth out of register with colour: PX pixels in a direction drawn from the seed, or
+    /// DX,DY pixels (right, down). Every depth image is moved against its colour image.
+    #[arg(
+        long = "depth-shift",
+        value_name = "PX|DX,DY",
+        allow_hyphen_values = true
+    )]
+    depth_shift: Option<DepthShift>,
+    /// Seed for random faults (and a --depth-shift's direction).
     #[arg(long, default_value_t = 0)]
     seed: u64,
     /// Suppress depth (monocular).
@@ -670,6 +678,7 @@ fn cmd_run(a: RunArgs, quiet: bool) -> Result<()> {
             fault_rates: a.fault_rates,
             seed: a.seed,
             mono: a.mono,
+            depth_shift: a.depth_shift,
         },
         eval: a.eval,
         command: std::env::args().collect(),

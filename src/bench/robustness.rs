@@ -49,6 +49,9 @@ pub const FALSE_RATES: [f64; 2] = [0.01, 0.05];
 pub const FAULT_SEED: u64 = 1;
 /// Length of the dark stretch (black frames) in the middle of the sequence.
 pub const DARK_SECONDS: f64 = 1.0;
+/// Depth out of register with colour (`--depth-shift`, direction from the fault seed): a few
+/// pixels, as a real sensor's registration is off, and far off.
+pub const DEPTH_SHIFT_PX: [u32; 2] = [3, 8];
 /// The issue's ATE target: a kidnapped run's ATE at most this times the unperturbed one.
 pub const ATE_TOLERANCE: f64 = 1.2;
 /// `--drop-shift` moves every drop by less than this (seconds): half the tracked time the grid
@@ -64,6 +67,7 @@ pub enum Group {
     FalseFrames,
     Dark,
     DepthSuppressed,
+    DepthShift,
 }
 
 /// One cell of the grid: a name (`kidnap-2x1s`) and the `homing run` flags that make it.
@@ -216,6 +220,19 @@ pub fn grid(stamps: &[f64], quick: bool, mono: bool, drop_shift: f64) -> Grid {
             group: Group::DepthSuppressed,
             args: vec!["--mono".into()],
         });
+        // Depth out of register with colour, as on a sensor whose registration is off.
+        for px in DEPTH_SHIFT_PX {
+            g.perturbations.push(Perturbation {
+                name: format!("depth-shift-{px}px"),
+                group: Group::DepthShift,
+                args: vec![
+                    "--depth-shift".into(),
+                    px.to_string(),
+                    "--seed".into(),
+                    FAULT_SEED.to_string(),
+                ],
+            });
+        }
     }
     g
 }
@@ -267,6 +284,12 @@ pub struct Row {
     pub closures_accepted: u64,
     /// Accepted closures whose transform is wrong against the ground truth.
     pub closures_wrong: u64,
+    /// The safety net's cost: pools the Corrupted Map state rolled back that were right by
+    /// the ground truth, and poses it discarded that were not false frames'.
+    pub pools_rolled_back_right: u64,
+    pub poses_discarded: u64,
+    /// Its catches: pools rolled back with a wrong member.
+    pub pools_rolled_back_wrong: u64,
     /// Per perturbation event: delivered frames from its end to the next frame with a pose
     /// (`None`: no pose after it).
     pub recovery_frames: Vec<Option<usize>>,
@@ -293,7 +316,7 @@ pub struct Row {
 }
 
 /// The CSV header (the column order of [`Row`]).
-pub const CSV_COLUMNS: [&str; 18] = [
+pub const CSV_COLUMNS: [&str; 21] = [
     "sequence",
     "perturbation",
     "controller",
@@ -304,6 +327,9 @@ pub const CSV_COLUMNS: [&str; 18] = [
     "maps",
     "closures_accepted",
     "closures_wrong",
+    "pools_rolled_back_right",
+    "poses_discarded",
+    "pools_rolled_back_wrong",
     "recovery_frames",
     "merge_frames",
     "seen_again",
@@ -346,6 +372,9 @@ impl Row {
             self.maps.to_string(),
             self.closures_accepted.to_string(),
             self.closures_wrong.to_string(),
+            self.pools_rolled_back_right.to_string(),
+            self.poses_discarded.to_string(),
+            self.pools_rolled_back_wrong.to_string(),
             recovery_text(&self.recovery_frames),
             recovery_text(&self.merge_frames),
             self.seen_again
@@ -1125,6 +1154,9 @@ fn empty_row(job: &Job) -> Row {
         maps: 0,
         closures_accepted: 0,
         closures_wrong: 0,
+        pools_rolled_back_right: 0,
+        poses_discarded: 0,
+        pools_rolled_back_wrong: 0,
         recovery_frames: Vec::new(),
         final_state: "not run".into(),
         wall_s: 0.0,
@@ -1226,6 +1258,27 @@ fn read_run(dir: &Path, line: &[String], row: &mut Row) -> Result<()> {
         .or(u("/closures_accepted"))
         .unwrap_or(0);
     row.closures_wrong = u("/evaluation/closures/accepted_wrong").unwrap_or(0);
+    let rolled = u("/evaluation/closures/pools_rolled_back").unwrap_or(0);
+    row.pools_rolled_back_wrong = u("/evaluation/closures/pools_rolled_back_wrong").unwrap_or(0);
+    row.pools_rolled_back_right = rolled.saturating_sub(row.pools_rolled_back_wrong);
+    // A false frame's pose is rightly discarded; any other is a loss.
+    let faults: std::collections::BTreeSet<u64> = s
+        .pointer("/perturbations/faults")
+        .and_then(|v| v.as_array())
+        .map(|a| {
+            a.iter()
+                .filter_map(|f| f.pointer("/frame")?.as_u64())
+                .collect()
+        })
+        .unwrap_or_default();
+    row.poses_discarded = match s.pointer("/discarded_poses").and_then(|v| v.as_array()) {
+        Some(a) => a
+            .iter()
+            .filter_map(|d| d.pointer("/frame")?.as_u64())
+            .filter(|f| !faults.contains(f))
+            .count() as u64,
+        None => u("/poses_discarded").unwrap_or(0),
+    };
     if let Some(st) = s.pointer("/final_state").and_then(|v| v.as_str()) {
         row.final_state = st.to_string();
     }
@@ -1472,6 +1525,30 @@ fn markdown(
             let cells: Vec<String> = ctrl_names
                 .iter()
                 .map(|c| find(rows, &s.name, &p.name, c).map_or("–".into(), cell))
+                .collect();
+            let _ = writeln!(md, "| {} | {} |", p.name, cells.join(" | "));
+        }
+        // The safety net's cost next to its catches: right pools rolled back, poses discarded
+        // beyond false frames, wrong pools it caught (wrong closures standing are in the
+        // cells above).
+        let _ = writeln!(
+            md,
+            "\nSafety net: pools rolled back that were right / poses discarded that were not false \
+             frames' / pools rolled back that were wrong (caught).\n"
+        );
+        let _ = writeln!(md, "| perturbation | {} |", ctrl_names.join(" | "));
+        let _ = writeln!(md, "|---|{}", "---|".repeat(ctrl_names.len()));
+        for p in &s.grid.perturbations {
+            let cells: Vec<String> = ctrl_names
+                .iter()
+                .map(|c| {
+                    find(rows, &s.name, &p.name, c).map_or("–".into(), |r| {
+                        format!(
+                            "{} / {} / {}",
+                            r.pools_rolled_back_right, r.poses_discarded, r.pools_rolled_back_wrong
+                        )
+                    })
+                })
                 .collect();
             let _ = writeln!(md, "| {} | {} |", p.name, cells.join(" | "));
         }
@@ -1909,6 +1986,8 @@ mod tests {
                 "false-foreign-5pct",
                 "dark-1s",
                 "depth-suppressed",
+                "depth-shift-3px",
+                "depth-shift-8px",
             ]
         );
         let k = &g.perturbations[4];

@@ -32,6 +32,10 @@ pub struct ClosureCheck {
     /// Accepted, then rolled back by the Corrupted Map state.
     pub rolled_back: usize,
     pub rolled_back_wrong: usize,
+    /// Pools rolled back, and those of them with a wrong member (the safety net's catches;
+    /// the others are its cost: right work it condemned).
+    pub pools_rolled_back: usize,
+    pub pools_rolled_back_wrong: usize,
     /// Rejected by the validator (or refused as a rolled-back alignment).
     pub rejected: usize,
     pub rejected_wrong: usize,
@@ -118,7 +122,14 @@ pub fn check_closures(
     mono: Option<&MonoScales>,
 ) -> ClosureCheck {
     let mut c = ClosureCheck::default();
+    let mut pools: BTreeMap<u32, bool> = BTreeMap::new();
     for r in rows {
+        if r.verdict == "rolled-back"
+            && let Some(p) = r.pool
+        {
+            let wrong = closure_is_wrong(r, gt, max_dt, mono).unwrap_or(false);
+            *pools.entry(p).or_default() |= wrong;
+        }
         let Some(wrong) = closure_is_wrong(r, gt, max_dt, mono) else {
             continue;
         };
@@ -147,6 +158,8 @@ pub fn check_closures(
             }
         }
     }
+    c.pools_rolled_back = pools.len();
+    c.pools_rolled_back_wrong = pools.values().filter(|w| **w).count();
     c
 }
 

@@ -163,6 +163,40 @@ impl std::str::FromStr for FaultRate {
     }
 }
 
+/// `--depth-shift PX` or `--depth-shift DX,DY`: the depth image is out of register with the
+/// colour image by this many pixels, as on a sensor whose depth-to-colour registration is off
+/// (a factory calibration for another unit, a camera knocked about, another sensor model).
+/// A single number is a length, in a direction drawn from the seed.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum DepthShift {
+    /// This many pixels, direction from the seed.
+    Length(f64),
+    /// Pixels to the right and down.
+    Offset(f64, f64),
+}
+
+impl std::str::FromStr for DepthShift {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        let bad =
+            || format!("--depth-shift '{s}': expected PX or DX,DY in pixels (e.g. 3 or 2.5,-1)");
+        let num = |x: &str| -> std::result::Result<f64, String> {
+            let v: f64 = x.trim().trim_end_matches("px").parse().map_err(|_| bad())?;
+            (v.is_finite() && v.abs() <= 100.0)
+                .then_some(v)
+                .ok_or_else(bad)
+        };
+        match s.split_once(',') {
+            Some((x, y)) => Ok(Self::Offset(num(x)?, num(y)?)),
+            None => {
+                let v = num(s)?;
+                (v >= 0.0).then_some(Self::Length(v)).ok_or_else(bad)
+            }
+        }
+    }
+}
+
 /// What the user asked for. Serialised into `summary.json`.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct PerturbationSpec {
@@ -172,11 +206,18 @@ pub struct PerturbationSpec {
     pub seed: u64,
     /// Depth suppressed (monocular).
     pub mono: bool,
+    /// Depth out of register with colour.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub depth_shift: Option<DepthShift>,
 }
 
 impl PerturbationSpec {
     pub fn is_empty(&self) -> bool {
-        self.drops.is_empty() && self.faults.is_empty() && self.fault_rates.is_empty() && !self.mono
+        self.drops.is_empty()
+            && self.faults.is_empty()
+            && self.fault_rates.is_empty()
+            && !self.mono
+            && self.depth_shift.is_none()
     }
 }
 
@@ -199,6 +240,10 @@ pub struct PerturbationPlan {
     pub dropped: Vec<(usize, usize)>,
     pub dropped_frames: usize,
     pub faults: Vec<AppliedFault>,
+    /// `--depth-shift` resolved: every depth image moved this many pixels (right, down)
+    /// against its colour image.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub depth_shift_px: Option<[f64; 2]>,
     #[serde(skip)]
     pub delivered: Vec<usize>,
 }
@@ -268,11 +313,20 @@ impl PerturbationPlan {
                 source,
             });
         }
+        // Drawn after every fault, so that asking for a shift moves no fault.
+        let depth_shift_px = spec.depth_shift.map(|d| match d {
+            DepthShift::Offset(x, y) => [x, y],
+            DepthShift::Length(l) => {
+                let a = rng.random_range(0.0..std::f64::consts::TAU);
+                [l * a.cos(), l * a.sin()]
+            }
+        });
         Ok(Self {
             spec: spec.clone(),
             dropped_frames: n - delivered.len(),
             dropped,
             faults,
+            depth_shift_px,
             delivered,
         })
     }
@@ -328,6 +382,9 @@ impl<'a> PerturbedSequence<'a> {
             if self.plan.spec.mono {
                 frame.depth = None;
             }
+            if let (Some(d), Some([dx, dy])) = (frame.depth.as_mut(), self.plan.depth_shift_px) {
+                shift_depth(d, dx, dy);
+            }
             previous = Some(frame.clone());
             Ok(frame)
         })
@@ -369,6 +426,28 @@ impl<'a> PerturbedSequence<'a> {
             FaultKind::Frozen | FaultKind::Foreign => {}
         }
         Ok(frame)
+    }
+}
+
+/// Moves the depth image `(dx, dy)` pixels against the colour image: the reading at (u, v) is
+/// the one that was at (u − dx, v − dy), nearest pixel (interpolating would invent depths
+/// between a foreground edge and what lies behind it); none where that falls outside.
+fn shift_depth(d: &mut DepthImage, dx: f64, dy: f64) {
+    let (w, h) = (d.width as i64, d.height as i64);
+    let (ox, oy) = (dx.round() as i64, dy.round() as i64);
+    let src = std::mem::take(&mut d.data);
+    d.data = vec![0.0; src.len()];
+    for v in 0..h {
+        let sv = v - oy;
+        if !(0..h).contains(&sv) {
+            continue;
+        }
+        for u in 0..w {
+            let su = u - ox;
+            if (0..w).contains(&su) {
+                d.data[(v * w + u) as usize] = src[(sv * w + su) as usize];
+            }
+        }
     }
 }
 
@@ -418,6 +497,43 @@ mod tests {
         assert_eq!(plan.dropped, vec![(30, 60), (250, 260)]);
         assert_eq!(plan.delivered.len(), 300 - 40);
         assert!(!plan.delivered.contains(&30) && plan.delivered.contains(&60));
+    }
+
+    #[test]
+    fn a_depth_shift_moves_depth_against_colour_and_is_recorded() {
+        assert_eq!("3".parse::<DepthShift>(), Ok(DepthShift::Length(3.0)));
+        assert_eq!(
+            "2,-1".parse::<DepthShift>(),
+            Ok(DepthShift::Offset(2.0, -1.0))
+        );
+        assert!("-3".parse::<DepthShift>().is_err());
+        assert!("x".parse::<DepthShift>().is_err());
+        let spec = PerturbationSpec {
+            depth_shift: Some(DepthShift::Length(8.0)),
+            fault_rates: vec!["black:0.05".parse().unwrap()],
+            seed: 3,
+            ..Default::default()
+        };
+        let a = PerturbationPlan::new(&spec, &stamps(300)).unwrap();
+        let [dx, dy] = a.depth_shift_px.unwrap();
+        assert!(((dx * dx + dy * dy).sqrt() - 8.0).abs() < 1e-9);
+        assert_eq!(a, PerturbationPlan::new(&spec, &stamps(300)).unwrap());
+        let without = PerturbationSpec {
+            depth_shift: None,
+            ..spec.clone()
+        };
+        let b = PerturbationPlan::new(&without, &stamps(300)).unwrap();
+        assert_eq!(a.faults, b.faults, "a shift moves no fault");
+        let json = serde_json::to_string(&a).unwrap();
+        assert!(json.contains("depth_shift_px"), "{json}");
+
+        let mut d = DepthImage::new(4, 3);
+        d.data = (0..12).map(|i| i as f32).collect();
+        shift_depth(&mut d, 1.0, 1.0);
+        assert_eq!(
+            d.data,
+            vec![0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 2.0, 0.0, 4.0, 5.0, 6.0]
+        );
     }
 
     #[test]
