@@ -310,6 +310,10 @@ pub struct LoopClosingConfig {
     /// Floor on a closure edge's uncertainty, added to the validator's estimate.
     pub closure_min_sigma_m: f64,
     pub closure_min_sigma_deg: f64,
+    /// What a right closure is off by on a real sensor, added to its uncertainty when the
+    /// consistency check judges it (not when the pose graph weighs it).
+    pub closure_sensor_sigma_m: f64,
+    pub closure_sensor_sigma_deg: f64,
     /// Keyframes sharing at least this many points are joined in the essential graph.
     pub essential_min_covisibility: u32,
     /// Full bundle adjustment after a consistent global optimisation.
@@ -364,6 +368,8 @@ impl Default for LoopClosingConfig {
             odometry_sigma_deg_per_m: 2.0,
             closure_min_sigma_m: 0.005,
             closure_min_sigma_deg: 0.25,
+            closure_sensor_sigma_m: 0.05,
+            closure_sensor_sigma_deg: 1.5,
             essential_min_covisibility: 100,
             full_ba_after_closure: true,
             known_place_min_age_s: 5.0,
@@ -845,6 +851,18 @@ impl Config {
         c.pos(
             "loop_closing.closure_min_sigma_deg",
             l.closure_min_sigma_deg,
+        );
+        c.range(
+            "loop_closing.closure_sensor_sigma_m",
+            l.closure_sensor_sigma_m,
+            0.0,
+            10.0,
+        );
+        c.range(
+            "loop_closing.closure_sensor_sigma_deg",
+            l.closure_sensor_sigma_deg,
+            0.0,
+            180.0,
         );
         c.range(
             "loop_closing.essential_min_covisibility",

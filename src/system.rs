@@ -682,6 +682,7 @@ fn summarize(
         controller: setup.config.controller.kind.as_str().into(),
         poses_discarded: fin.rec.discarded.len(),
         discarded_poses: std::mem::take(&mut fin.rec.discarded),
+        keyframes_discarded: machine.keyframes_discarded,
         map_keyframes: machine
             .atlas
             .maps

@@ -763,7 +763,7 @@ mod tests {
         assert_eq!(crossed.get(&from_merged), Some(&vec![merge]));
         assert_eq!(crossed.get(&same_side), None);
         // Once the merge is revoked, nothing is across it.
-        atlas.revoke(merge, ORB).unwrap();
+        atlas.revoke(merge, ORB, &[]).unwrap();
         assert!(atlas.loops_across_merges().is_empty());
     }
 
@@ -833,7 +833,7 @@ mod tests {
         let keyframes = atlas.n_keyframes();
         links_hold(&atlas);
 
-        let r = atlas.revoke(p0, ORB).unwrap();
+        let r = atlas.revoke(p0, ORB, &[]).unwrap();
         links_hold(&atlas);
         assert_eq!(atlas.maps.len(), 2);
         assert_eq!(atlas.n_keyframes(), keyframes, "no keyframe is lost");
@@ -867,7 +867,10 @@ mod tests {
             !atlas.pools[p1 as usize].rolled_back,
             "a pool of one side stands"
         );
-        assert!(atlas.revoke(p0, ORB).is_err(), "a pool is revoked once");
+        assert!(
+            atlas.revoke(p0, ORB, &[]).is_err(),
+            "a pool is revoked once"
+        );
         // A frame tracked after the merge against a's keyframe follows the camera's side.
         let rel = Isometry3::translation(0.0, 0.1, 0.0);
         let abs = rel * atlas.maps[&a].keyframes[&ka].pose_cw;
@@ -915,10 +918,56 @@ mod tests {
             Matrix6::identity(),
         );
         atlas.add_edges(p1, [e]);
-        let r = atlas.revoke(p0, ORB).unwrap();
+        let r = atlas.revoke(p0, ORB, &[]).unwrap();
         assert_eq!(r.crossing, vec![p1]);
         assert!(atlas.pools[p1 as usize].rolled_back);
         assert_eq!(atlas.n_keyframes(), 3);
+    }
+
+    /// The camera lost track after a wrong merge and was found again in the joined map by
+    /// relocalizing against it: what it made from then on is placed by the far side's
+    /// structure, and becomes a map of its own when the merge is revoked.
+    #[test]
+    fn what_the_camera_made_after_it_was_found_again_is_a_map_of_its_own() {
+        let mut atlas = Atlas::new();
+        let a = small_map(&mut atlas, 0);
+        let b = small_map(&mut atlas, 1);
+        let ka = *atlas.maps[&a].keyframes.keys().next().unwrap();
+        let kb = *atlas.maps[&b].keyframes.keys().next().unwrap();
+        let pa = *atlas.maps[&a].points.keys().next().unwrap();
+        let p0 = merged_at_frame_5(&mut atlas, a, b);
+        atlas.add_edges(
+            p0,
+            [ClosureEdge::new(
+                p0,
+                kb,
+                ka,
+                &Sim3::identity(),
+                (1.0, 1.0),
+                Matrix6::identity(),
+            )],
+        );
+        let map = atlas.maps.get_mut(&a).unwrap();
+        let before = map.add_keyframe(&measurement(6), Isometry3::identity());
+        let after = map.add_keyframe(&measurement(9), Isometry3::identity());
+        map.observe(after, 2, pa);
+        let r = atlas.revoke(p0, ORB, &[3, 8]).unwrap();
+        links_hold(&atlas);
+        assert_eq!(atlas.maps.len(), 3);
+        assert_eq!(atlas.n_keyframes(), 4);
+        let d = r.detached_map.expect("a detached map");
+        assert_eq!(r.detached_from, Some(8));
+        assert!(atlas.maps[&b].keyframes.contains_key(&before));
+        assert!(atlas.maps[&d].keyframes.contains_key(&after));
+        assert_eq!(r.camera_map(), d);
+        assert_eq!(
+            atlas.maps[&d].keyframes[&after].points[2],
+            Some(r.copies[&pa])
+        );
+        // Frames tracked against the far side follow the camera's side of their time.
+        let rel = Isometry3::identity();
+        assert_eq!(r.reanchor(7, ka, &rel).unwrap().unwrap().0, before);
+        assert_eq!(r.reanchor(9, ka, &rel).unwrap().unwrap().0, after);
     }
 
     /// A loop's correction bent the map; revoked, every keyframe is back where it was and
@@ -966,7 +1015,7 @@ mod tests {
         let after = map.add_keyframe(&measurement(3), after_pose);
         let rel_after = after_pose * map.keyframes[&q].pose_cw.inverse();
 
-        let r = atlas.revoke(p, ORB).unwrap();
+        let r = atlas.revoke(p, ORB, &[]).unwrap();
         links_hold(&atlas);
         assert_eq!(atlas.maps.len(), 1);
         assert_eq!(atlas.n_keyframes(), 3);

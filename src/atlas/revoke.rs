@@ -30,9 +30,13 @@ use std::collections::{BTreeMap, BTreeSet};
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
 pub enum Side {
     /// The camera's: the query side of the pool, and what the camera made after it.
-    Near,
+    Near = 0,
     /// The place the pool matched the camera to.
-    Far,
+    Far = 1,
+    /// What the camera made after it lost track and was found again in the joined map by
+    /// relocalizing against it: placed by the far side's structure, not by continuity with
+    /// the near side, so it is tied to neither and becomes a map of its own.
+    Detached = 2,
 }
 
 /// A keyframe's pose and units when the pool was revoked (before its geometry moved), for
@@ -60,6 +64,11 @@ pub struct Revocation {
     /// Near-side keyframes a frame tracked across the seam can be re-anchored to: the pool's
     /// query keyframe and the near keyframes made since, as they were when revoked.
     pub near_anchors: Vec<Anchor>,
+    /// The frame from which the camera was detached (see [`Side::Detached`]), the map its
+    /// keyframes since are in, and those keyframes as they were when revoked.
+    pub detached_from: Option<usize>,
+    pub detached_map: Option<MapId>,
+    pub detached_anchors: Vec<Anchor>,
     /// Point → the copy of it made on the other side.
     pub copies: BTreeMap<PointId, PointId>,
     /// A loop's far-side points (the map is not split: they stay in the camera's map, but
@@ -100,12 +109,20 @@ impl Revocation {
             return None;
         }
         let far = self.far.get(&kf)?;
-        let near = self
-            .near_anchors
-            .iter()
-            .filter(|a| a.frame <= frame)
-            .max_by_key(|a| (a.frame, a.kf))
-            .or_else(|| self.near_anchors.first());
+        let detached = self.detached_from.is_some_and(|d| frame >= d);
+        let pick = |anchors: &'_ [Anchor]| {
+            anchors
+                .iter()
+                .filter(|a| a.frame <= frame)
+                .max_by_key(|a| (a.frame, a.kf))
+                .or_else(|| anchors.first())
+                .copied()
+        };
+        let near = if detached {
+            pick(&self.detached_anchors).or_else(|| pick(&self.near_anchors))
+        } else {
+            pick(&self.near_anchors)
+        };
         let Some(near) = near else {
             return Some(None);
         };
@@ -132,7 +149,7 @@ impl Revocation {
     /// The map the camera is in after the revocation.
     pub fn camera_map(&self) -> MapId {
         match self.camera.last().map_or(Side::Near, |c| c.1) {
-            Side::Near => self.near_map,
+            Side::Near | Side::Detached => self.detached_map.unwrap_or(self.near_map),
             Side::Far => self.far_map,
         }
     }
@@ -207,7 +224,15 @@ struct NewPoint {
 impl Atlas {
     /// Revokes pool `pool` (see the module's doc). `orb`: the ORB pyramid's scale factor and
     /// level count, to refresh the points whose observations changed.
-    pub fn revoke(&mut self, pool: PoolId, orb: (f64, u32)) -> Result<Revocation> {
+    /// `reacquired`: the frames on which the camera, lost, was found again in its map by
+    /// relocalizing against it (not by its motion model): from the first after the pool, what
+    /// it made is [`Side::Detached`].
+    pub fn revoke(
+        &mut self,
+        pool: PoolId,
+        orb: (f64, u32),
+        reacquired: &[usize],
+    ) -> Result<Revocation> {
         let Some(rec) = self.pools.get(pool as usize).cloned() else {
             return Err(Error::invalid(format!("revoke: no pool {pool}")));
         };
@@ -242,6 +267,9 @@ impl Atlas {
                 far_map: 0,
                 far: BTreeMap::new(),
                 near_anchors: Vec::new(),
+                detached_from: None,
+                detached_map: None,
+                detached_anchors: Vec::new(),
                 copies: BTreeMap::new(),
                 far_points: BTreeSet::new(),
                 links_cut: 0,
@@ -289,6 +317,12 @@ impl Atlas {
         let near_correction = a;
         let a = a.unwrap_or_else(Sim3::identity);
         let mut camera_sides = vec![(rec.frame, Side::Near)];
+        let detached_from = reacquired.iter().copied().find(|f| *f > rec.frame);
+        // A keyframe the camera made at frame `f` while on side `camera`.
+        let made_by_camera = |f: usize, camera: Side| match (camera, detached_from) {
+            (Side::Near, Some(d)) if f >= d => Side::Detached,
+            _ => camera,
+        };
         match &rec.kind {
             PoolKind::Loop { .. } => {
                 let jump = anchor_kf
@@ -303,8 +337,11 @@ impl Atlas {
                         Some(_) => Side::Near,
                         // Made after the loop: with the camera.
                         None => {
-                            corrections.insert(*id, a);
-                            Side::Near
+                            let s = made_by_camera(k.frame, Side::Near);
+                            if s == Side::Near {
+                                corrections.insert(*id, a);
+                            }
+                            s
                         }
                     };
                     side.insert(*id, s);
@@ -344,12 +381,12 @@ impl Atlas {
                     } else {
                         continue;
                     };
-                    for k in lineage.keyframes.keys() {
+                    for (k, kf) in &lineage.keyframes {
                         if map.keyframes.contains_key(k) {
-                            side.entry(*k).or_insert(camera);
+                            side.entry(*k).or_insert(made_by_camera(kf.frame, camera));
                         }
                     }
-                    let mut votes = [0usize; 2];
+                    let mut votes = [0usize; 3];
                     for e in &q.edges {
                         for k in [e.query, e.matched] {
                             if lineage.keyframes.contains_key(&k)
@@ -374,8 +411,8 @@ impl Atlas {
                         camera_sides.push((q.frame, fs));
                     }
                 }
-                for k in map.keyframes.keys() {
-                    side.entry(*k).or_insert(camera);
+                for (k, kf) in &map.keyframes {
+                    side.entry(*k).or_insert(made_by_camera(kf.frame, camera));
                 }
                 // Made since: the near side's with the camera, the far side's stay.
                 for (k, s) in &side {
@@ -385,25 +422,29 @@ impl Atlas {
                 }
             }
         }
+        // A merge's (or relocalization's) two sides become two maps again; what the camera
+        // made detached becomes a map of its own, whatever the pool.
         let split = !matches!(rec.kind, PoolKind::Loop { .. })
             && side.values().any(|s| *s == Side::Near)
             && side.values().any(|s| *s == Side::Far);
+        let apart =
+            |a: Side, b: Side| a != b && (split || a == Side::Detached || b == Side::Detached);
 
         // --- Sides of the points: their creator's, else most of their observers'.
         let kf_side = |k: &KfId| side.get(k).copied();
         let mut point_side: BTreeMap<PointId, Side> = BTreeMap::new();
         for (id, p) in &map.points {
             let s = kf_side(&p.first_kf).unwrap_or_else(|| {
-                let near = p
-                    .observations
-                    .keys()
-                    .filter(|k| kf_side(k) == Some(Side::Near))
-                    .count();
-                if 2 * near >= p.observations.len() {
-                    Side::Near
-                } else {
-                    Side::Far
+                let mut votes = [0usize; 3];
+                for k in p.observations.keys() {
+                    if let Some(s) = kf_side(k) {
+                        votes[s as usize] += 1;
+                    }
                 }
+                [Side::Near, Side::Far, Side::Detached]
+                    .into_iter()
+                    .max_by_key(|s| (votes[*s as usize], std::cmp::Reverse(*s as usize)))
+                    .expect("three sides")
             });
             point_side.insert(*id, s);
         }
@@ -433,8 +474,8 @@ impl Atlas {
                 let skel = skeleton_kf(*kid);
                 let had = skel.and_then(|s| s.points.get(kp).copied().flatten());
                 // A link older than the pool stands (a loop's two ends may share points
-                // legitimately), unless the map splits.
-                if had == Some(p) && !split {
+                // legitimately), unless the two go to different maps.
+                if had == Some(p) && !apart(ks, ps) {
                     continue;
                 }
                 let in_camera = k.pose_cw * nalgebra::Point3::from(map.points[&p].position);
@@ -495,10 +536,10 @@ impl Atlas {
 
         // --- Apply: the pool and the later ones across its seam stop standing.
         let mut crossing = Vec::new();
-        if split {
+        {
             for q in self.pools.iter().filter(|q| q.id > pool && q.undoable()) {
                 let across = q.edges.iter().any(|e| {
-                    matches!((kf_side(&e.query), kf_side(&e.matched)), (Some(a), Some(b)) if a != b)
+                    matches!((kf_side(&e.query), kf_side(&e.matched)), (Some(a), Some(b)) if apart(a, b))
                 });
                 if across {
                     crossing.push(q.id);
@@ -528,6 +569,17 @@ impl Atlas {
                 side[&k.id] == Side::Near
                     && (Some(k.id) == anchor_kf || !before_kf.contains_key(&k.id))
             })
+            .map(|k| Anchor {
+                kf: k.id,
+                frame: k.frame,
+                pose_cw: k.pose_cw,
+                units: k.units,
+            })
+            .collect();
+        let detached_anchors: Vec<Anchor> = map
+            .keyframes
+            .values()
+            .filter(|k| side[&k.id] == Side::Detached)
             .map(|k| Anchor {
                 kf: k.id,
                 frame: k.frame,
@@ -622,12 +674,23 @@ impl Atlas {
             }
         }
 
-        // --- Split at the seam: the near side becomes a map of its own.
+        // --- Split at the seam: the near side becomes a map of its own (a merge's or a
+        // relocalization's), and so does what the camera made detached.
         let far_map = j;
         let mut near_map = j;
+        let mut detached_map = None;
+        let mut parts = Vec::new();
         if split {
-            let id = match rec.kind {
-                PoolKind::Merge { from, .. } if !self.maps.contains_key(&from) => from,
+            parts.push(Side::Near);
+        }
+        if side.values().any(|s| *s == Side::Detached) {
+            parts.push(Side::Detached);
+        }
+        for part in parts {
+            let id = match (part, &rec.kind) {
+                (Side::Near, PoolKind::Merge { from, .. }) if !self.maps.contains_key(from) => {
+                    *from
+                }
                 _ => {
                     let id = self.next_map;
                     self.next_map += 1;
@@ -635,38 +698,44 @@ impl Atlas {
                 }
             };
             let map = self.maps.get_mut(&j).expect("checked");
-            let mut near = Map::new(id);
-            let near_kfs: Vec<KfId> = map
+            let mut moved = Map::new(id);
+            let kfs: Vec<KfId> = map
                 .keyframes
                 .keys()
-                .filter(|k| side[k] == Side::Near)
+                .filter(|k| side[k] == part)
                 .copied()
                 .collect();
-            for k in near_kfs {
+            for k in kfs {
                 let kf = map.keyframes.remove(&k).expect("listed");
-                near.keyframes.insert(k, kf);
+                moved.keyframes.insert(k, kf);
             }
-            let near_points: Vec<PointId> = map
+            let points: Vec<PointId> = map
                 .points
                 .iter()
                 .filter(|(id, p)| {
                     p.observations
                         .keys()
                         .next()
-                        .is_some_and(|k| near.keyframes.contains_key(k))
-                        || (p.observations.is_empty() && point_side.get(id) == Some(&Side::Near))
+                        .is_some_and(|k| moved.keyframes.contains_key(k))
+                        || (p.observations.is_empty() && point_side.get(id) == Some(&part))
                 })
                 .map(|(id, _)| *id)
                 .collect();
-            for p in near_points {
+            for p in points {
                 let pt = map.points.remove(&p).expect("listed");
-                near.insert_point(pt);
+                moved.insert_point(pt);
             }
-            near_map = id;
-            self.maps.insert(id, near);
+            self.maps.insert(id, moved);
+            match part {
+                Side::Near => near_map = id,
+                _ => detached_map = Some(id),
+            }
         }
         self.high_water.1 = self.high_water.1.max(next_point);
-        for m in [far_map, near_map] {
+        for m in [Some(far_map), Some(near_map), detached_map]
+            .into_iter()
+            .flatten()
+        {
             let hw = self.high_water;
             if let Some(map) = self.maps.get_mut(&m) {
                 map.reserve_ids(hw);
@@ -679,7 +748,7 @@ impl Atlas {
                 }
             }
         }
-        let far_points: BTreeSet<PointId> = if split {
+        let far_points: BTreeSet<PointId> = if split || near_map != far_map {
             BTreeSet::new()
         } else {
             point_side
@@ -700,6 +769,9 @@ impl Atlas {
             far_map,
             far: far_anchors,
             near_anchors,
+            detached_from: detached_map.and(detached_from),
+            detached_map,
+            detached_anchors,
             copies,
             far_points,
             links_cut,

@@ -73,6 +73,7 @@ impl StateMachine {
             for k in map.keyframes.keys() {
                 self.detector.remove(*k as u64);
             }
+            self.keyframes_discarded += map.keyframes.len();
             tracing::info!(
                 "frame {}: map {id} discarded: lost on the frame after its first",
                 m.frame

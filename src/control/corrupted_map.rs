@@ -216,8 +216,8 @@ impl StateMachine {
     }
 
     /// Mapping's depth check condemned keyframe `kf` of map `map`: the pools that changed
-    /// that map are undone, newest first, until the keyframe is gone with one (it was made
-    /// on the wrong map) or no longer sees through its map.
+    /// that map are revoked, newest first, until the keyframe leaves the map with one (it was
+    /// made on the near side of a wrong merge, which is cut) or no longer sees through it.
     pub(super) fn recover_from_keyframe(&mut self, map: MapId, kf: KfId) -> bool {
         let c = &self.cfg.controller;
         let (min_judged, max_share) = (c.min_expected_cells as usize, c.max_contradiction);
@@ -225,7 +225,8 @@ impl StateMachine {
             if !self.undo_pool(p) {
                 continue;
             }
-            let Some(m) = self.atlas.map_of_keyframe(kf) else {
+            // Split off with the camera's side: the seam it saw through is cut.
+            let Some(m) = self.atlas.map_of_keyframe(kf).filter(|m| *m == map) else {
                 return true;
             };
             let (judged, through) = self.depth_check_across_pools(m, kf);
@@ -296,7 +297,7 @@ impl StateMachine {
         }
         let camera_map = self.current;
         let orb = (self.cfg.orb.scale_factor, self.cfg.orb.n_levels);
-        let r = match self.atlas.revoke(p, orb) {
+        let r = match self.atlas.revoke(p, orb, &self.reacquired) {
             Ok(r) => r,
             Err(e) => {
                 tracing::warn!("revocation of pool {p} failed: {e}");
@@ -326,7 +327,7 @@ impl StateMachine {
             }
         }
         tracing::info!(
-            "pool {p} revoked{}: map {} (near side) and map {} (far side), {} links cut, {} points given back, {} keyframes moved back, nothing discarded",
+            "pool {p} revoked{}: map {} (near side) and map {} (far side){}, {} links cut, {} points given back, {} keyframes moved back, nothing discarded",
             if r.crossing.is_empty() {
                 String::new()
             } else {
@@ -334,12 +335,18 @@ impl StateMachine {
             },
             r.near_map,
             r.far_map,
+            r.detached_map.map_or(String::new(), |d| format!(
+                ", map {d} (made after the camera was found again at frame {})",
+                r.detached_from.unwrap_or_default()
+            )),
             r.links_cut,
             r.points_restored,
             r.keyframes_moved
         );
         // The camera goes on in its side's map, where it is.
         if camera_map.is_some_and(|c| c == r.far_map || c == r.near_map) {
+            // Before the camera was detached, frames followed the near side; a detached
+            // camera goes on in its own map.
             let cam = r.camera_map();
             if self.current != Some(cam) {
                 self.merger.started(r.frame);

@@ -34,8 +34,12 @@ impl StateMachine {
                 let pose = self.tracked(cur, &track, m);
                 // Found by the motion model, it continues the trajectory across the
                 // interruption (a false frame re-tracked by descriptors alone is not mapped).
+                // Found otherwise, the map placed it where it looks like it is: a revocation
+                // of a pool before does not carry it with the camera's side (`Side::Detached`).
                 if track.method == TrackMethod::MotionModel {
                     self.retracked = Some(track);
+                } else {
+                    self.reacquired.push(m.frame);
                 }
                 return Some(pose);
             }

@@ -144,6 +144,9 @@ pub struct StateMachine {
     aliased: std::collections::BTreeSet<KfId>,
     /// Every closure or relocalization candidate, for closures.csv.
     pub closures: Vec<ClosureRow>,
+    /// Frames on which Idle found the lost camera again in its map other than by the motion
+    /// model (see `Atlas::revoke`).
+    reacquired: Vec<usize>,
     /// Pools revoked on this step, for its output.
     revocations: Vec<crate::atlas::Revocation>,
     /// Maps a recovery has optimised again already.
@@ -167,6 +170,9 @@ pub struct StateMachine {
     frame_obs: frames::FrameStore,
     /// Frame poses Final's batch refinement re-estimated: keyframe and pose relative to it.
     pub refined_frames: BTreeMap<usize, (KfId, Isometry3<f64>)>,
+    /// Keyframes that left the atlas: only those of a map discarded as one unconfirmed view
+    /// (`discard_unconfirmed`); a revoked pool keeps every keyframe.
+    pub keyframes_discarded: usize,
     /// Set when the machine stopped because the map is unusable.
     pub stop_reason: Option<String>,
     /// After a user stop: when Final's refinement must end (`mapping.final_refinement_max_s`).
@@ -226,9 +232,11 @@ impl StateMachine {
             contradicting_kf: None,
             aliased: Default::default(),
             closures: Vec::new(),
+            reacquired: Vec::new(),
             revocations: Vec::new(),
             reoptimized: Default::default(),
             stop_reason: None,
+            keyframes_discarded: 0,
             retracked: None,
             resume: None,
             lost_place: None,

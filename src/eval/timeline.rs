@@ -3,7 +3,11 @@
 //! For each step of the scenario (a frame range with its expected states, in order) the
 //! *observed* states are the distinct consecutive states the run was in during the step,
 //! widened by a tolerance window on both sides (the step boundaries are script marks; a
-//! state change a few frames early or late is the same behaviour). A step **matches** when
+//! state change a few frames early or late is the same behaviour). They begin with how the
+//! previous step's event was handled: the states entered after the previous step's last
+//! expected state, when that lies within the window before this one's (a CorruptedMap
+//! recovery that reached Idle and Core(M&R) 37 frames before "explores Room 2" began is
+//! that step's Idle, Core(M&R), not a miss). A step **matches** when
 //! its expected states occur in that order among the observed ones, and — unless a
 //! transient state (Init, Idle, CorruptedMap, Final) is expected — the state held for most of
 //! the step's own frames is one of the expected states. Init, CorruptedMap and Final last a
@@ -88,15 +92,37 @@ pub fn compare(steps: &[ScenarioStep], rows: &[StateCsvRow], window: usize) -> V
         .max()
         .unwrap_or(0);
     let per = states_per_frame(rows, n);
+    let distinct = |frames: &[Vec<String>]| {
+        let mut out: Vec<String> = Vec::new();
+        for st in frames.iter().flatten() {
+            if out.last() != Some(st) {
+                out.push(st.clone());
+            }
+        }
+        out
+    };
     steps
         .iter()
-        .map(|s| {
-            let lo = s.first_frame.saturating_sub(window);
+        .enumerate()
+        .map(|(i, s)| {
+            let lo = s
+                .first_frame
+                .saturating_sub(window)
+                .min(n.saturating_sub(1));
             let hi = (s.last_frame + window).min(n.saturating_sub(1));
             let mut observed: Vec<String> = Vec::new();
-            for st in per[lo..=hi].iter().flatten() {
-                if observed.last() != Some(st) {
-                    observed.push(st.clone());
+            if let Some(prev) = i.checked_sub(1).map(|p| &steps[p]) {
+                let before = distinct(&per[lo.saturating_sub(window)..lo]);
+                if let Some(k) = before
+                    .iter()
+                    .rposition(|st| prev.expected_states.contains(st))
+                {
+                    observed.extend(before[k + 1..].iter().cloned());
+                }
+            }
+            for st in distinct(&per[lo..=hi]) {
+                if observed.last() != Some(&st) {
+                    observed.push(st);
                 }
             }
             let mut counts: Vec<(String, usize)> = Vec::new();
@@ -199,5 +225,36 @@ mod tests {
         assert_eq!(m, [true, true, true, true, false, false], "{r:#?}");
         assert_eq!(r[0].observed, ["Init", "Idle", "Mapping"]);
         assert_eq!(r[2].dominant, "Localized");
+    }
+
+    /// A recovery that reached Idle and Core(M&R) before the next step's window: that step
+    /// begins with them. Without the previous step's state just before, nothing is added.
+    #[test]
+    fn a_step_begins_with_how_the_previous_one_was_handled() {
+        let mut rows = vec![row(0, "Mapping", Some("(start)"))];
+        rows.extend((1..20).map(|f| row(f, "Mapping", None)));
+        rows.push(row(20, "CorruptedMap", Some("Mapping")));
+        rows.push(row(21, "Idle", Some("CorruptedMap")));
+        rows.push(row(21, "Core(M&R)", Some("Idle")));
+        rows.extend((22..60).map(|f| row(f, "Core(M&R)", None)));
+        let steps = [
+            step(0, 15, 24, &["CorruptedMap"]),
+            step(1, 25, 59, &["Idle", "Core(M&R)"]),
+        ];
+        let r = compare(&steps, &rows, 3);
+        assert!(r[1].matched, "{r:#?}");
+        assert_eq!(r[1].observed, ["Idle", "Core(M&R)"]);
+        // Beyond the window before the step, it is not this step's.
+        let late = [
+            step(0, 15, 24, &["CorruptedMap"]),
+            step(1, 32, 59, &["Idle", "Core(M&R)"]),
+        ];
+        assert!(!compare(&late, &rows, 3)[1].matched);
+        // Nor without the previous step's expected state.
+        let other = [
+            step(0, 15, 24, &["Localized"]),
+            step(1, 25, 59, &["Idle", "Core(M&R)"]),
+        ];
+        assert!(!compare(&other, &rows, 3)[1].matched);
     }
 }

@@ -111,6 +111,27 @@ impl PoseGraph {
         (e.information * w, w)
     }
 
+    /// Edge `k`'s χ² at the current poses under the information `info` instead of its own
+    /// (what a verdict judges it with).
+    pub fn edge_chi2_under(&self, k: usize, info: &Matrix7) -> f64 {
+        let e = &self.edges[k];
+        let r = self.error(e, &self.nodes[e.i].pose, &self.nodes[e.j].pose);
+        chi2_of(&r, info, self.dof())
+    }
+
+    /// How far edge `k`'s measurement is from the current poses: the translation (in the
+    /// measurement's units) and rotation (radians) of the error, and its log-scale.
+    pub fn edge_residual(&self, k: usize) -> (f64, f64, f64) {
+        let e = &self.edges[k];
+        let r = self.error(e, &self.nodes[e.i].pose, &self.nodes[e.j].pose);
+        let d = e
+            .measurement
+            .inverse()
+            .compose(&self.nodes[e.i].pose)
+            .compose(&self.nodes[e.j].pose.inverse());
+        (d.translation.norm(), d.rotation.angle(), r[6])
+    }
+
     /// Unscaled χ² of every edge at the current poses.
     pub fn edge_chi2(&self) -> Vec<f64> {
         let dof = self.dof();

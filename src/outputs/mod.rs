@@ -228,6 +228,9 @@ pub struct Summary {
     pub poses_discarded: usize,
     /// Every pose discarded, and why.
     pub discarded_poses: Vec<DiscardedPose>,
+    /// Keyframes that left the atlas during the run (only a map of one unconfirmed view is
+    /// ever discarded; a revoked pool keeps every keyframe).
+    pub keyframes_discarded: usize,
     /// Keyframes per map at the end.
     pub map_keyframes: BTreeMap<u32, usize>,
     /// Why the machine stopped early (corrupted map that no pool explains), if it did.

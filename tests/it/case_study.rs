@@ -37,6 +37,28 @@ fn ours_follows_table_ii_step_by_step() {
     // stands in the map session 1 leaves behind, and that map is accurate.
     assert!(ours.closures_rolled_back >= 1, "{md}");
     assert_eq!(ours.closures_accepted_wrong, 0, "{md}");
+    // Revoking them lost nothing (#64): every keyframe made and every pose tracked stays,
+    // those tracked on the look-alike's map since included, and the frames after the
+    // recovery are posed too.
+    let s1: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(out.join("ours/session1/summary.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(
+        s1["poses_discarded"].as_u64(),
+        Some(0),
+        "{}",
+        s1["discarded_poses"]
+    );
+    assert_eq!(s1["keyframes_discarded"].as_u64(), Some(0));
+    let (posed, frames) = (
+        s1["frames_with_pose"].as_u64().unwrap(),
+        s1["frames"].as_u64().unwrap(),
+    );
+    assert!(
+        posed as f64 >= 0.95 * frames as f64,
+        "{posed} of {frames} frames posed in session 1"
+    );
     let ate = ours.ate_largest_map_m.expect("largest map evaluated");
     assert!(ate < 0.10, "largest map ATE {ate} m\n{md}");
     // Step 14: Localized within 30 frames of the mapped part of Room 2 coming into view.
