@@ -438,11 +438,18 @@ impl Atlas {
             self.maps.insert(from, src);
             return Err(Error::invalid(format!("merge: no map {into}")));
         };
-        // Pools whose maps are in `from` now live in `into`'s world.
+        // Pools whose world is in `from` now live in `into`'s. A pool's world is the one its
+        // skeletons are restored in: a merge's map merged into (its own `from` is placed by
+        // its alignment), a loop's or relocalization's map.
         for p in self.pools.iter_mut().filter(|p| p.undoable()) {
+            let world = match p.kind {
+                PoolKind::Merge { into, .. } => into,
+                PoolKind::Loop { map, .. } | PoolKind::Relocalization { map } => map,
+            };
             let inside = p
                 .before
                 .iter()
+                .filter(|m| m.id == world)
                 .flat_map(|m| m.keyframes.keys())
                 .any(|k| src.keyframes.contains_key(k));
             if inside {

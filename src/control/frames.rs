@@ -68,7 +68,10 @@ impl FrameStore {
     /// of points in their own map (a point of the other side becomes its copy there, when
     /// the revocation made one).
     pub fn reanchor(&mut self, r: &Revocation, atlas: &Atlas) {
-        let cut = [r.near_map, r.far_map];
+        let cut: Vec<_> = [Some(r.near_map), Some(r.far_map), r.detached_map]
+            .into_iter()
+            .flatten()
+            .collect();
         let frames: Vec<usize> = self.frames.keys().copied().collect();
         for f in frames {
             let obs = self.frames.get_mut(&f).expect("listed");
