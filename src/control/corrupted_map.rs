@@ -137,7 +137,7 @@ impl StateMachine {
         }
     }
 
-    /// After a recovery found the look-alike keyframes `lookalikes`: the pools still standing
+    /// After a recovery found the look-alike keyframes `lookalikes`: the merges still standing
     /// whose closures matched the same place (one of those keyframes, or a keyframe sharing
     /// points with one) are undone too. The recovery proved that place ambiguous: a second
     /// closure to it is no better evidence than the one that was wrong, and it may have
@@ -186,12 +186,16 @@ impl StateMachine {
                     .any(|(o, w)| *w >= LOOKALIKE_COVISIBILITY && lookalikes.contains(o))
                 || shared as f64 / own as f64 >= LOOKALIKE_SHARED
         };
+        // Only what claims another map is at that place: a merge (or a relocalization of a
+        // lost camera). A loop is its map's own revisit of its own place, which the look-alike
+        // says nothing about; it stands on its own evidence (a right loop went with a right
+        // merge condemned on a real sensor, #64).
         let standing: Vec<PoolId> = self
             .atlas
             .pools
             .iter()
             .rev()
-            .filter(|p| p.undoable())
+            .filter(|p| p.undoable() && !matches!(p.kind, PoolKind::Loop { .. }))
             .map(|p| p.id)
             .collect();
         for p in standing {

@@ -103,8 +103,10 @@ impl FrameStore {
             else {
                 continue;
             };
+            // A loop's far side stays in the map, but the camera's side did not see it.
+            let near = !r.far.contains_key(&obs.kf);
             obs.obs.retain_mut(|o| {
-                if map.points.contains_key(&o.point) {
+                if map.points.contains_key(&o.point) && !(near && r.far_points.contains(&o.point)) {
                     return true;
                 }
                 match r.copies.get(&o.point) {
