@@ -203,13 +203,6 @@ fn move_keyframe(k: &mut Keyframe, c: &Sim3) {
     }
 }
 
-fn move_point(p: &mut MapPoint, c: &Sim3) {
-    p.position = c.transform_point(&p.position);
-    p.normal = c.rotation * p.normal;
-    p.min_distance *= c.scale;
-    p.max_distance *= c.scale;
-}
-
 /// A point to create on a key point's side: where the key point's keyframe saw it (camera
 /// coordinates and that frame's units at the time), its id and its template.
 struct NewPoint {
@@ -482,7 +475,7 @@ impl Atlas {
                 let restorable = had.filter(|x| *x != p && !existing.contains(x));
                 let target = match restorable {
                     Some(x) => {
-                        if !new_points.contains_key(&x) {
+                        if let std::collections::btree_map::Entry::Vacant(e) = new_points.entry(x) {
                             let s = skel.expect("had a skeleton");
                             let xp = rec
                                 .before
@@ -490,17 +483,14 @@ impl Atlas {
                                 .find_map(|m| m.points.get(&x))
                                 .expect("the skeleton's point");
                             let cam = s.pose_cw * nalgebra::Point3::from(xp.position);
-                            new_points.insert(
-                                x,
-                                NewPoint {
-                                    id: x,
-                                    template: xp.clone(),
-                                    seen_from: *kid,
-                                    in_camera: cam.coords * (k.units / s.units),
-                                    units: k.units,
-                                    observations: Vec::new(),
-                                },
-                            );
+                            e.insert(NewPoint {
+                                id: x,
+                                template: xp.clone(),
+                                seen_from: *kid,
+                                in_camera: cam.coords * (k.units / s.units),
+                                units: k.units,
+                                observations: Vec::new(),
+                            });
                             points_restored += 1;
                         }
                         x
@@ -546,60 +536,25 @@ impl Atlas {
                 }
             }
         }
-        let far_anchors: BTreeMap<KfId, Anchor> = map
-            .keyframes
-            .values()
-            .filter(|k| side[&k.id] == Side::Far)
-            .map(|k| {
-                (
-                    k.id,
-                    Anchor {
-                        kf: k.id,
-                        frame: k.frame,
-                        pose_cw: k.pose_cw,
-                        units: k.units,
-                    },
-                )
-            })
+        let anchor = |k: &Keyframe| Anchor {
+            kf: k.id,
+            frame: k.frame,
+            pose_cw: k.pose_cw,
+            units: k.units,
+        };
+        let side_of = &side;
+        let on = |s: Side| map.keyframes.values().filter(move |k| side_of[&k.id] == s);
+        let far_anchors: BTreeMap<KfId, Anchor> =
+            on(Side::Far).map(|k| (k.id, anchor(k))).collect();
+        let mut near_anchors: Vec<Anchor> = on(Side::Near)
+            .filter(|k| Some(k.id) == anchor_kf || !before_kf.contains_key(&k.id))
+            .map(anchor)
             .collect();
-        let mut near_anchors: Vec<Anchor> = map
-            .keyframes
-            .values()
-            .filter(|k| {
-                side[&k.id] == Side::Near
-                    && (Some(k.id) == anchor_kf || !before_kf.contains_key(&k.id))
-            })
-            .map(|k| Anchor {
-                kf: k.id,
-                frame: k.frame,
-                pose_cw: k.pose_cw,
-                units: k.units,
-            })
-            .collect();
-        let detached_anchors: Vec<Anchor> = map
-            .keyframes
-            .values()
-            .filter(|k| side[&k.id] == Side::Detached)
-            .map(|k| Anchor {
-                kf: k.id,
-                frame: k.frame,
-                pose_cw: k.pose_cw,
-                units: k.units,
-            })
-            .collect();
+        let detached_anchors: Vec<Anchor> = on(Side::Detached).map(anchor).collect();
         if near_anchors.is_empty()
-            && let Some(k) = map
-                .keyframes
-                .values()
-                .filter(|k| side[&k.id] == Side::Near)
-                .max_by_key(|k| (k.frame, k.id))
+            && let Some(k) = on(Side::Near).max_by_key(|k| (k.frame, k.id))
         {
-            near_anchors.push(Anchor {
-                kf: k.id,
-                frame: k.frame,
-                pose_cw: k.pose_cw,
-                units: k.units,
-            });
+            near_anchors.push(anchor(k));
         }
 
         let map = self.maps.get_mut(&j).expect("checked");
@@ -624,19 +579,7 @@ impl Atlas {
             }
         }
         if !corrections.is_empty() {
-            for p in map.points.values_mut() {
-                let r = if corrections.contains_key(&p.first_kf) {
-                    Some(p.first_kf)
-                } else {
-                    p.observations
-                        .keys()
-                        .find(|k| corrections.contains_key(k))
-                        .copied()
-                };
-                if let Some(c) = r.and_then(|r| corrections.get(&r)) {
-                    move_point(p, c);
-                }
-            }
+            crate::components::global_optimizer::move_points(map, &corrections);
         }
         for np in new_points.into_values() {
             let k = &map.keyframes[&np.seen_from];

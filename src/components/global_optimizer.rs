@@ -295,6 +295,12 @@ fn apply(map: &mut Map, ids: &[KfId], before: &[Sim3], graph: &PoseGraph) {
         pose.rotation.renormalize();
         kf.pose_cw = pose;
     }
+    move_points(map, &correction);
+}
+
+/// Each point moves with its reference keyframe's world correction (old world → new): the
+/// keyframe that created it, else its first remaining observer.
+pub fn move_points(map: &mut Map, correction: &BTreeMap<KfId, Sim3>) {
     for p in map.points.values_mut() {
         let r = if correction.contains_key(&p.first_kf) {
             Some(p.first_kf)

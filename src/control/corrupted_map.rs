@@ -122,7 +122,7 @@ impl StateMachine {
             }
             for m in maps {
                 if self.atlas.maps.contains_key(&m) && !self.reoptimized.contains(&m) {
-                    self.pose_graph_only(m);
+                    self.pose_graph(m);
                 }
             }
             self.reoptimized.clear();

@@ -414,34 +414,8 @@ impl StateMachine {
         Some(pose)
     }
 
-    /// The pose graph of map `map` optimised with its standing closure edges, nothing else: a
-    /// revocation's re-optimisation (the map was consistent before the revoked pool; its
-    /// points keep their local BA).
-    pub(super) fn pose_graph_only(&mut self, map: MapId) -> GlobalReport {
-        let closures = self.atlas.closure_edges(map);
-        let Some(m) = self.atlas.maps.get_mut(&map) else {
-            return GlobalReport {
-                consistent: true,
-                ..Default::default()
-            };
-        };
-        let report =
-            global_optimizer::optimize_map(&self.cfg.loop_closing, m, &closures, &[], self.mono);
-        tracing::info!(
-            "pose graph of map {map} after the revocation: {} keyframes, {} closure edges, cost {:.1} -> {:.1}, max chi2/dof closure {:.2} odometry {:.2}",
-            report.keyframes,
-            report.closure_edges,
-            report.initial_cost,
-            report.final_cost,
-            report.max_closure_nchi2,
-            report.max_odometry_nchi2
-        );
-        report
-    }
-
-    /// The global optimizer on map `map` with its standing closure edges; a full BA follows
-    /// when the map is consistent (and the config asks for it).
-    /// Pose-graph optimisation of `map` over its closure edges; when consistent, the closure
+    /// The global optimizer on map `map`: its pose graph ([`Self::pose_graph`]); when
+    /// consistent, the closure
     /// just accepted (if any) is fused (see `fuse_closure`) and a full BA follows. Fusing
     /// between the two is what keeps the loop closed in the BA: without shared points the BA
     /// has nothing holding the two sides together and relaxes them apart again.
@@ -450,6 +424,30 @@ impl StateMachine {
         map: MapId,
         closure: Option<&Accepted>,
     ) -> GlobalReport {
+        let report = self.pose_graph(map);
+        if report.consistent
+            && let Some(acc) = closure
+        {
+            self.fuse_closure(map, acc);
+        }
+        if report.consistent
+            && self.cfg.loop_closing.full_ba_after_closure
+            && let Some(m) = self.atlas.maps.get_mut(&map)
+            && let Some(r) = self.merger.global_ba(m)
+        {
+            tracing::debug!(
+                "full BA after closure: cost {:.1} -> {:.1}",
+                r.initial_cost,
+                r.final_cost
+            );
+        }
+        report
+    }
+
+    /// The pose graph of map `map` optimised with its standing closure edges and checked;
+    /// alone, a revocation's re-optimisation (the map was consistent before the revoked pool,
+    /// and its points keep their local BA).
+    pub(super) fn pose_graph(&mut self, map: MapId) -> GlobalReport {
         let closures = self.atlas.closure_edges(map);
         let Some(m) = self.atlas.maps.get_mut(&map) else {
             return GlobalReport {
@@ -478,22 +476,6 @@ impl StateMachine {
                 format!("INCONSISTENT, offending pools {:?}", report.offending_pools)
             }
         );
-        if report.consistent
-            && let Some(acc) = closure
-        {
-            self.fuse_closure(map, acc);
-        }
-        if report.consistent
-            && self.cfg.loop_closing.full_ba_after_closure
-            && let Some(m) = self.atlas.maps.get_mut(&map)
-            && let Some(r) = self.merger.global_ba(m)
-        {
-            tracing::debug!(
-                "full BA after closure: cost {:.1} -> {:.1}",
-                r.initial_cost,
-                r.final_cost
-            );
-        }
         report
     }
 }
