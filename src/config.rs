@@ -253,6 +253,9 @@ pub struct LoopClosingConfig {
     pub hbst_max_distance: u32,
     /// Largest accepted |0.5 - set fraction| of the split bit of a node.
     pub hbst_max_split_imbalance: f64,
+    /// `hbst`: a query also scans the leaves whose path differs from its own in up to this
+    /// many split bits (0: the paper's single descent; see `HbstParams::search_flips`).
+    pub hbst_search_flips: u32,
     /// Keyframes this recent are not closure candidates.
     pub temporal_window: u32,
     /// `hbst`: fewest detector votes for a candidate.
@@ -341,6 +344,7 @@ impl Default for LoopClosingConfig {
             hbst_max_leaf_size: 100,
             hbst_max_distance: 25,
             hbst_max_split_imbalance: 0.45,
+            hbst_search_flips: 0,
             temporal_window: 20,
             min_matches: 40,
             min_validation_matches: 40,
@@ -724,6 +728,12 @@ impl Config {
             l.hbst_max_split_imbalance,
             0.0,
             0.5,
+        );
+        c.range(
+            "loop_closing.hbst_search_flips",
+            l.hbst_search_flips as f64,
+            0.0,
+            3.0,
         );
         c.range(
             "loop_closing.temporal_window",

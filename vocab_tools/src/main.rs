@@ -186,6 +186,10 @@ struct TreeArgs {
     /// HBST: largest |0.5 - set fraction| of a split bit (config: hbst_max_split_imbalance).
     #[arg(long)]
     max_split_imbalance: Option<f64>,
+    /// HBST: a query also scans the leaves its path reaches with up to this many split bits
+    /// flipped (config: hbst_search_flips; 0 = one descent).
+    #[arg(long)]
+    search_flips: Option<u32>,
 }
 
 impl TreeArgs {
@@ -213,6 +217,12 @@ impl TreeArgs {
                 bail!("--max-split-imbalance must be within [0, 0.5]");
             }
             p.hbst.max_split_imbalance = v;
+        }
+        if let Some(v) = self.search_flips {
+            if v > 3 {
+                bail!("--search-flips must be at most 3");
+            }
+            p.hbst.search_flips = v;
         }
         Ok((p, cfg.loop_closing.temporal_window as usize))
     }

@@ -28,6 +28,12 @@ pub struct HbstParams {
     pub max_distance: u32,
     /// A split is rejected when |0.5 − set fraction| of the best bit exceeds this.
     pub max_split_imbalance: f64,
+    /// A query also scans every leaf whose path differs from its own in at most this many
+    /// split bits (0: one descent, the paper's tree). A revisit's descriptor differs from the
+    /// stored one in ~10 % of its bits, so it leaves the query's path at one of the ~12 splits
+    /// more often than not; each allowed flip brings back the neighbours that left at one split
+    /// (see [`Hbst::probe_leaves`]).
+    pub search_flips: u32,
 }
 
 impl Default for HbstParams {
@@ -36,6 +42,7 @@ impl Default for HbstParams {
             max_leaf_size: 100,
             max_distance: 25,
             max_split_imbalance: 0.45,
+            search_flips: 0,
         }
     }
 }
@@ -46,6 +53,7 @@ impl HbstParams {
             max_leaf_size: c.hbst_max_leaf_size as usize,
             max_distance: c.hbst_max_distance,
             max_split_imbalance: c.hbst_max_split_imbalance,
+            search_flips: c.hbst_search_flips,
         }
     }
 }
@@ -268,6 +276,39 @@ impl Hbst {
         }
     }
 
+    /// The leaves a query scans: its own leaf first, then every leaf reached by taking the
+    /// other branch at up to `search_flips` of the splits on the way (each leaf once: a stored
+    /// descriptor sits in exactly one leaf, so no match is found twice). With `f` flips and
+    /// depth `d` that is Σ_{k≤f} C(d, k) leaves: 1, ~13, ~80 at the real trees' depth of 12.
+    fn probe_leaves(&self, w: &Words, out: &mut Vec<u32>) {
+        out.clear();
+        out.push(self.descend(w));
+        if self.params.search_flips == 0 {
+            return;
+        }
+        // (node, flips left), depth first in a fixed order: deterministic.
+        let mut stack: Vec<(u32, u32)> = vec![(0, self.params.search_flips)];
+        while let Some((mut i, left)) = stack.pop() {
+            loop {
+                match self.nodes[i as usize] {
+                    Node::Split { bit: b, children } => {
+                        let own = bit(w, b);
+                        if left > 0 {
+                            stack.push((children[1 - own], left - 1));
+                        }
+                        i = children[own];
+                    }
+                    Node::Leaf(l) => {
+                        if left < self.params.search_flips {
+                            out.push(l);
+                        }
+                        break;
+                    }
+                }
+            }
+        }
+    }
+
     /// The leaf a descriptor falls into, with its depth (for tests and diagnostics).
     pub fn leaf_of(&self, d: &Descriptor) -> (u32, u32) {
         let l = self.descend(&words(d));
@@ -303,19 +344,28 @@ impl Hbst {
         let mut accepted = vec![UNKNOWN; self.slots.len()];
         let mut found: Vec<(u32, u32, u32, u32)> = Vec::new(); // (slot, query, ref, distance)
         let mut hits = Vec::with_capacity(2 * self.params.max_leaf_size);
-        for (qi, (q, &l)) in qs.iter().zip(leaves).enumerate() {
-            let leaf = &self.leaves[l as usize];
-            hits.clear();
-            scan(&leaf.descs, q, self.params.max_distance, &mut hits);
-            for &(j, d) in &hits {
-                let (slot, r) = leaf.refs[j as usize];
-                let a = &mut accepted[slot as usize];
-                if *a == UNKNOWN {
-                    let key = self.slots[slot as usize].expect("stored slots are live");
-                    *a = accept(key) as u8;
-                }
-                if *a == 1 {
-                    found.push((slot, qi as u32, r, d));
+        let mut probe = Vec::new();
+        for (qi, (q, &own_leaf)) in qs.iter().zip(leaves).enumerate() {
+            if self.params.search_flips == 0 {
+                probe.clear();
+                probe.push(own_leaf);
+            } else {
+                self.probe_leaves(q, &mut probe);
+            }
+            for &l in &probe {
+                let leaf = &self.leaves[l as usize];
+                hits.clear();
+                scan(&leaf.descs, q, self.params.max_distance, &mut hits);
+                for &(j, d) in &hits {
+                    let (slot, r) = leaf.refs[j as usize];
+                    let a = &mut accepted[slot as usize];
+                    if *a == UNKNOWN {
+                        let key = self.slots[slot as usize].expect("stored slots are live");
+                        *a = accept(key) as u8;
+                    }
+                    if *a == 1 {
+                        found.push((slot, qi as u32, r, d));
+                    }
                 }
             }
         }

@@ -46,6 +46,7 @@ fn small_params() -> HbstParams {
         max_leaf_size: 20,
         max_distance: 25,
         max_split_imbalance: 0.45,
+        search_flips: 0,
     }
 }
 
@@ -128,6 +129,7 @@ fn split_imbalance_limit_is_applied() {
             max_leaf_size: 100,
             max_distance: 25,
             max_split_imbalance: limit,
+            search_flips: 0,
         });
         t.insert(0, &descs);
         assert_eq!(t.stats().leaves > 1, splits, "limit {limit}");
@@ -221,6 +223,52 @@ fn hbst_matches_are_a_subset_of_brute_force_and_equal_without_splits() {
         n_exact += ms.len();
     }
     assert!(n_approx > n_exact / 3, "{n_approx} of {n_exact}");
+}
+
+#[test]
+fn search_flips_find_more_true_matches_and_nothing_else() {
+    // Queries whose descriptors differ by up to 12 bits leave their stored neighbours' path
+    // at some split: each allowed flip must bring matches back, all of them true, none twice.
+    let images = structured_images(5, 20, 50);
+    let mut bf = BruteForce::new(25);
+    let mut trees: Vec<Hbst> = (0..3)
+        .map(|f| {
+            Hbst::new(HbstParams {
+                search_flips: f,
+                ..small_params()
+            })
+        })
+        .collect();
+    for (i, d) in images.iter().enumerate() {
+        bf.insert(i as u64, d);
+        for t in &mut trees {
+            t.insert(i as u64, d);
+        }
+    }
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    let q: Vec<Descriptor> = images[2].iter().map(|d| perturb(&mut rng, d, 12)).collect();
+    let exact = bf.query_detailed(&q, |_| true, false).matches;
+    let mut counts = Vec::new();
+    for t in &trees {
+        let r = t.query(&q, |_| true);
+        let mut n = 0;
+        for (img, ms) in &r {
+            let mut seen = std::collections::BTreeSet::new();
+            for m in ms {
+                assert!(exact[img].contains(m), "{m:?} not a true match");
+                assert!(seen.insert((m.query, m.reference)), "{m:?} twice");
+            }
+            n += ms.len();
+        }
+        counts.push(n);
+    }
+    let n_exact: usize = exact.values().map(Vec::len).sum();
+    assert!(
+        counts[0] < counts[1] && counts[1] < counts[2] && counts[2] <= n_exact,
+        "{counts:?} of {n_exact}"
+    );
+    // Inserting is unchanged by the search: the trees have the same shape.
+    assert_eq!(trees[0].stats(), trees[2].stats());
 }
 
 #[test]
