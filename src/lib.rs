@@ -5,7 +5,7 @@
 //! The layout follows the architecture: [`components`] are the paper's components (one module
 //! each), [`atlas`] and [`map`] hold the maps, [`control`] is the state machine (one file per
 //! state), [`optim`] the back-end solvers, [`io`] the inputs, [`outputs`] the run's files, logs
-//! and reports, [`eval`] ATE/RPE, [`bench`](mod@bench) the benchmarks, and [`system`] the run driver.
+//! and reports, [`eval`] ATE/RPE, [`bench`](mod@bench) the benchmarks, [`slam`] the streaming API (one frame in, its pose out) and [`system`] the run driver on it.
 
 pub mod config;
 pub mod error;
@@ -22,4 +22,5 @@ pub mod interrupt;
 pub mod map;
 pub mod optim;
 pub mod outputs;
+pub mod slam;
 pub mod system;

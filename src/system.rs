@@ -4,7 +4,6 @@
 //!
 
 use crate::atlas::{Atlas, AtlasCamera};
-use crate::components::preprocess::Preprocessor;
 use crate::config::{CameraSource, Config, ControllerKind, resolve_camera};
 use crate::control::StateMachine;
 use crate::error::{Error, Result};
@@ -13,11 +12,8 @@ use crate::io::Sequence;
 use crate::io::mcap::{McapSequence, McapTopics};
 use crate::io::perturb::{PerturbationPlan, PerturbationSpec, PerturbedSequence};
 use crate::io::tum::{FrameSource, StampedPose, TumSequence};
-use crate::map::KfId;
-use crate::outputs::{
-    ClosureRow, RunOutputs, StateRow, Summary, Timing, Transition, describe_camera,
-};
-use nalgebra::Isometry3;
+use crate::outputs::{ClosureRow, RunOutputs, Summary, Timing, describe_camera};
+use crate::slam::{Recorded, Slam};
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -134,7 +130,6 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
     };
     let out = RunOutputs::create(&opts.out)?;
     let intr = camera.intrinsics();
-    let mut pre = Preprocessor::new(&camera, &config.orb)?;
     let mut viz = match &opts.rerun {
         Some(target) => Some(crate::outputs::viz::Visualizer::open(
             target,
@@ -143,8 +138,7 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
         )?),
         None => None,
     };
-    let mut machine = init(opts, &config, &camera, &pre, spec.mono)?;
-    let mut timing = Timing::default();
+    let mut slam = init(opts, &config, &camera, spec.mono)?;
     let input = Input {
         opts,
         frames,
@@ -152,30 +146,45 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
         camera: &camera,
         mono: spec.mono,
     };
-    let mut rec = frame_loop(
-        &input,
-        &mut pre,
-        features.as_mut(),
-        viz.as_mut(),
-        &mut machine,
-        &mut timing,
-    );
+    let mut extra = frame_loop(&input, features.as_mut(), viz.as_mut(), &mut slam);
     tracing::info!(
         "low-threshold FAST found key points on {} of {} frames",
-        pre.weak_passes,
-        rec.delivered
+        slam.preprocessor().weak_passes,
+        slam.delivered()
     );
-    let state = final_state(&mut machine, &mut rec, &mut timing);
-    let posed = resolve_poses(&machine, &mut rec, opts.mcap_log);
+    let result = slam.finish()?;
+    let posed = Posed {
+        pose_maps: result
+            .trajectory
+            .iter()
+            .zip(&result.trajectory_maps)
+            .map(|(p, m)| (p.t, *m))
+            .collect(),
+        posed: if opts.mcap_log {
+            result
+                .trajectory
+                .iter()
+                .zip(&result.trajectory_frames)
+                .zip(&result.trajectory_maps)
+                .map(|((p, f), m)| crate::outputs::mcap_log::PosedFrame {
+                    frame: *f,
+                    t: p.t,
+                    map: *m,
+                    pose: p.pose,
+                })
+                .collect()
+        } else {
+            Vec::new()
+        },
+        trajectory: result.trajectory,
+    };
     if let Some(path) = &opts.save_map {
         // Final: the atlas is stored for a later session.
-        machine
-            .atlas
-            .save(path, AtlasCamera::from(&camera), spec.mono)?;
+        slam.save_atlas(path)?;
         tracing::info!("atlas saved to {}", path.display());
     }
-    let closures = closure_rows(&machine);
-    let keyframes = keyframe_rows(&machine);
+    let closures = result.closures;
+    let keyframes = result.keyframes;
     let evaluation = if opts.eval {
         evaluate(
             &seq,
@@ -184,20 +193,21 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
             &perturbed.plan,
             &closures,
             &posed.pose_maps,
-            &rec.unreadable.iter().map(|u| u.frame).collect(),
+            &extra.unreadable.iter().map(|u| u.frame).collect(),
         )?
     } else {
         None
     };
     let n = perturbed.len();
+    extra.rec = std::mem::take(slam.recorded_mut());
     let mut fin = Finished {
-        rec,
-        state,
+        rec: extra,
+        state: result.final_state,
         posed,
         closures,
         keyframes,
         evaluation,
-        timing,
+        timing: std::mem::take(slam.timing_mut()),
     };
     let setup = Setup {
         config,
@@ -209,12 +219,12 @@ pub fn run(opts: &RunOptions) -> Result<Summary> {
         (&seq, n),
         setup,
         &perturbed.plan,
-        &machine,
+        slam.machine(),
         &mut fin,
         wall,
     );
     write_outputs(&out, opts, &fin, &summary, viz)?;
-    match fin.rec.failure {
+    match fin.rec.rec.failure {
         Some(e) => Err(e),
         None => Ok(summary),
     }
@@ -243,13 +253,11 @@ fn init(
     opts: &RunOptions,
     config: &Config,
     camera: &crate::config::CameraConfig,
-    pre: &Preprocessor,
     mono: bool,
-) -> Result<StateMachine> {
-    let mut machine = StateMachine::new(config, camera, camera.intrinsics());
-    machine.set_surface_rays(pre.surface_rays());
+) -> Result<Slam> {
+    let mut slam = Slam::new(config, camera)?;
     if opts.threaded {
-        machine.set_threaded();
+        slam.set_threaded();
     }
     if let Some(path) = &opts.load_map {
         let atlas = Atlas::load(path, &AtlasCamera::from(camera), mono)?;
@@ -259,9 +267,9 @@ fn init(
             atlas.maps.len(),
             atlas.n_keyframes()
         );
-        machine.load_atlas(atlas);
+        slam = slam.with_atlas(atlas);
     }
-    Ok(machine)
+    Ok(slam)
 }
 
 /// What the frame loop reads.
@@ -273,76 +281,32 @@ struct Input<'a> {
     mono: bool,
 }
 
-/// What the frame loop recorded, for Final and the outputs.
+/// What the run driver records beside the session: for summary.json and run.mcap.
 #[derive(Default)]
-struct Recorded {
-    states: Vec<StateRow>,
-    /// Frame poses are kept relative to their reference keyframe, so that the final trajectory
-    /// follows the keyframes' optimised poses (as ORB-SLAM does) and frames of merged maps end
-    /// up in the merged frame. Keyframe ids are unique across the atlas.
-    relative: Vec<(usize, f64, KfId, Isometry3<f64>)>,
-    /// Poses that did not stand, and why.
-    discarded: Vec<crate::outputs::DiscardedPose>,
+struct RunRecord {
+    rec: Recorded,
     frame_stats: Vec<crate::outputs::mcap_log::FrameStats>,
-    /// The input error that ended the loop (`--strict-input`, or a frame that could not be
-    /// processed).
-    failure: Option<Error>,
-    delivered: usize,
-    /// The frame after which a user stop (SIGINT/SIGTERM) ended the loop.
-    user_stop: Option<(usize, f64)>,
     unreadable: Vec<crate::outputs::UnreadableFrame>,
-    extraction_reused_ms: f64,
 }
 
-impl Recorded {
-    /// states.csv's rows for one frame: its state, or one row per transition it made.
-    fn record_states(&mut self, frame: &crate::io::tum::Frame, out: &crate::control::StepOutput) {
-        if self.states.is_empty() && out.transitions.is_empty() {
-            self.states.push(StateRow {
-                frame: frame.index,
-                t: frame.t,
-                state: out.state.clone(),
-                transition: Some(Transition {
-                    from: "(start)".into(),
-                    trigger: "start".into(),
-                }),
-                flags: out.flags,
-                map: None,
-            });
-        } else if out.transitions.is_empty() {
-            self.states.push(StateRow {
-                frame: frame.index,
-                t: frame.t,
-                state: out.state.clone(),
-                transition: None,
-                flags: out.flags,
-                map: None,
-            });
-        }
-        for t in &out.transitions {
-            self.states.push(StateRow {
-                frame: frame.index,
-                t: frame.t,
-                state: t.to.clone(),
-                transition: Some(t.transition.clone()),
-                flags: t.flags,
-                map: None,
-            });
-        }
-    }
+/// The frames' poses for the outputs and the evaluation.
+struct Posed {
+    trajectory: Vec<StampedPose>,
+    /// Each posed frame's stamp and map.
+    pose_maps: Vec<(f64, u32)>,
+    /// For run.mcap (`--mcap-log`).
+    posed: Vec<crate::outputs::mcap_log::PosedFrame>,
 }
 
-/// The frame loop: one controller step per delivered frame, until the data ends, the
+/// The frame loop: one [`Slam`] frame per delivered frame, until the data ends, the
 /// controller stops, an input error ends the run or the user stops it.
 fn frame_loop(
     input: &Input<'_>,
-    pre: &mut Preprocessor,
     mut features: Option<&mut crate::io::features::Features>,
     mut viz: Option<&mut crate::outputs::viz::Visualizer>,
-    machine: &mut StateMachine,
-    timing: &mut Timing,
-) -> Recorded {
-    let mut rec = Recorded::default();
+    slam: &mut Slam,
+) -> RunRecord {
+    let mut extra = RunRecord::default();
     let n = input.perturbed.len();
     // Images are decoded on a loader thread a few frames ahead (in both modes: it changes
     // when a frame is read, never what is computed from it).
@@ -363,18 +327,18 @@ fn frame_loop(
             }
         });
         for (frame, load_ms) in rx {
-            timing.record("load", load_ms);
+            slam.timing_mut().record("load", load_ms);
             let frame = match frame {
                 Ok(f) => f,
                 // A frame on disk that cannot be read is a failed measurement, which the state
                 // machine meets like a black frame: the run goes on.
                 Err(e) if !input.opts.strict_input => {
-                    let index = perturbed.plan.delivered[rec.delivered];
+                    let index = perturbed.plan.delivered[slam.recorded_mut().delivered];
                     let t = input.frames.timestamp(index);
                     tracing::warn!(
                         "frame {index}: {e}: taken as a failed measurement (--strict-input stops instead)"
                     );
-                    rec.unreadable.push(crate::outputs::UnreadableFrame {
+                    extra.unreadable.push(crate::outputs::UnreadableFrame {
                         frame: index,
                         t,
                         error: e.to_string(),
@@ -382,12 +346,10 @@ fn frame_loop(
                     failed_measurement(index, t, input.camera, input.mono)
                 }
                 Err(e) => {
-                    rec.failure = Some(e);
+                    slam.recorded_mut().failure = Some(e);
                     break;
                 }
             };
-            rec.delivered += 1;
-            let t_frame = Instant::now();
             // An unperturbed frame's features from the file: the same measurement, and the
             // extraction time it took when the file was written.
             let reused = features
@@ -396,82 +358,46 @@ fn frame_loop(
                     perturbed.plan.fault(frame.index).is_none()
                         && perturbed.plan.depth_shift_px.is_none()
                 })
-                .and_then(|f| f.take(frame.index));
-            let reused_ms = reused.as_ref().map_or(0.0, |e| e.ms);
-            let m = match reused {
-                Some(mut e) => {
-                    if input.mono {
-                        e.m.depth.iter_mut().for_each(|d| *d = 0.0);
-                        e.m.surface.clear();
-                    }
-                    pre.weak_passes += e.weak as usize;
-                    timing.record("preprocess", e.ms);
-                    rec.extraction_reused_ms += e.ms;
-                    e.m
+                .and_then(|f| f.take(frame.index))
+                .map(|e| (e.m, e.ms, e.weak));
+            let counts = input.opts.mcap_timing.then(|| slam.timing_mut().counts());
+            let (result, m, out) = match slam.process_frame(&frame, reused) {
+                Ok(r) => r,
+                Err(e) => {
+                    slam.recorded_mut().failure = Some(e);
+                    break;
                 }
-                None => match timing.time("preprocess", || pre.process(&frame)) {
-                    Ok(m) => m,
-                    Err(e) => {
-                        rec.failure = Some(e);
-                        break;
-                    }
-                },
             };
-            let pre_ms = timing.last("preprocess").unwrap_or(0.0);
-            let tracked = timing.count("track");
-            let counts = input.opts.mcap_timing.then(|| timing.counts());
-            let out = machine.step(&m, timing);
-            timing.record("frame", t_frame.elapsed().as_secs_f64() * 1e3 + reused_ms);
-            // The front end's budget: extraction + tracking of one frame (mapping excluded).
-            if timing.count("track") > tracked {
-                let track_ms = timing.last("track").unwrap_or(0.0);
-                timing.record("extract_track", pre_ms + track_ms);
-            }
+            let machine = slam.machine();
             if input.opts.mcap_log {
-                rec.frame_stats.push(crate::outputs::mcap_log::FrameStats {
-                    frame: frame.index,
-                    t: frame.t,
-                    tracked_inliers: machine.track_inliers,
-                    keyframes: machine.atlas.n_keyframes(),
-                    maps: machine.atlas.maps.len(),
-                    timing_ms: counts.map(|c| timing.since(&c)),
-                });
+                extra
+                    .frame_stats
+                    .push(crate::outputs::mcap_log::FrameStats {
+                        frame: frame.index,
+                        t: frame.t,
+                        tracked_inliers: result.inliers,
+                        keyframes: machine.atlas.n_keyframes(),
+                        maps: machine.atlas.maps.len(),
+                        timing_ms: None,
+                    });
             }
-            if let Some(v) = viz.as_mut()
-                && let Err(e) = timing.time("visualize", || v.log_frame(&frame, &m, machine, &out))
+            if let Some(c) = counts
+                && let Some(s) = extra.frame_stats.last_mut()
             {
-                rec.failure = Some(e);
-                break;
+                s.timing_ms = Some(slam.timing_mut().since(&c));
             }
-            // A revoked pool loses no pose: the frames tracked across its seam follow the
-            // camera's side of the cut.
-            for r in &out.revocations {
-                rec.relative.retain_mut(|(f, t, kf, rel)| match r.reanchor(*f, *kf, rel) {
-                    None => true,
-                    Some(Some((k, new, _))) => {
-                        (*kf, *rel) = (k, new);
-                        true
-                    }
-                    Some(None) => {
-                        rec.discarded.push(crate::outputs::DiscardedPose {
-                            frame: *f,
-                            t: *t,
-                            reason: format!(
-                                "tracked after pool {}, revoked, with no keyframe of the camera's side to hold it",
-                                r.pool
-                            ),
-                        });
-                        false
-                    }
-                });
+            if let Some(v) = viz.as_mut() {
+                let (machine, timing) = slam.machine_and_timing();
+                if let Err(e) = timing.time("visualize", || v.log_frame(&frame, &m, machine, &out))
+                {
+                    slam.recorded_mut().failure = Some(e);
+                    break;
+                }
             }
-            if let Some((rel, _, kf)) = out.pose {
-                rec.relative.push((frame.index, frame.t, kf, rel));
-            }
-            rec.record_states(&frame, &out);
+            let machine = slam.machine();
             if let Some(hook) = &input.opts.progress {
                 (hook.0)(&Progress {
-                    delivered: rec.delivered,
+                    delivered: slam.delivered(),
                     total: n,
                     state: &out.state,
                     maps: machine.atlas.maps.len(),
@@ -485,150 +411,27 @@ fn frame_loop(
             }
             // Interruptible: a user stop (SIGINT/SIGTERM) ends the run after this frame.
             if crate::interrupt::stop_requested() {
-                rec.user_stop = Some((frame.index, frame.t));
+                let delivered = slam.delivered();
+                slam.recorded_mut().user_stop = Some((frame.index, frame.t));
                 tracing::warn!(
                     "user stop after frame {} ({} of {n} delivered): to Final",
                     frame.index,
-                    rec.delivered
+                    delivered
                 );
                 break;
             }
-            if rec.delivered.is_multiple_of(100) {
+            let delivered = slam.delivered();
+            if delivered.is_multiple_of(100) {
                 tracing::info!(
                     "frame {}/{n} state {} keyframes {}",
-                    rec.delivered,
+                    delivered,
                     out.state,
-                    machine.atlas.n_keyframes()
+                    slam.machine().atlas.n_keyframes()
                 );
             }
         }
     });
-    rec
-}
-
-/// Final: end of data, a fatal input error or a user stop (Interruptible → Final). Returns the
-/// state the controller ends in.
-fn final_state(machine: &mut StateMachine, rec: &mut Recorded, timing: &mut Timing) -> String {
-    let trigger = if rec.failure.is_some() {
-        "input_error"
-    } else if rec.user_stop.is_some() {
-        crate::control::USER_STOP
-    } else {
-        "end_of_data"
-    };
-    let fin = machine.finish(trigger, timing);
-    if let Some(last) = rec.states.last() {
-        let (frame, t) = (last.frame, last.t);
-        for tr in fin.transitions {
-            rec.states.push(StateRow {
-                frame,
-                t,
-                state: tr.to,
-                transition: Some(tr.transition),
-                flags: tr.flags,
-                map: None,
-            });
-        }
-    }
-    fin.state
-}
-
-/// The frames' poses, resolved through their keyframes in the final atlas.
-struct Posed {
-    trajectory: Vec<StampedPose>,
-    /// Each posed frame's stamp and map.
-    pose_maps: Vec<(f64, u32)>,
-    /// For run.mcap (`--mcap-log`).
-    posed: Vec<crate::outputs::mcap_log::PosedFrame>,
-}
-
-/// Resolves every frame's pose through its keyframe in the final atlas (Final's refinement may
-/// have re-estimated it), and names each states.csv row's map.
-fn resolve_poses(machine: &StateMachine, rec: &mut Recorded, mcap_log: bool) -> Posed {
-    let kf_map: std::collections::BTreeMap<KfId, (u32, &crate::map::Keyframe)> = machine
-        .atlas
-        .maps
-        .values()
-        .flat_map(|m| m.keyframes.values().map(move |k| (k.id, (m.id, k))))
-        .collect();
-    let mut frame_map: std::collections::BTreeMap<usize, u32> = std::collections::BTreeMap::new();
-    let mut trajectory: Vec<StampedPose> = Vec::with_capacity(rec.relative.len());
-    let mut pose_maps: Vec<(f64, u32)> = Vec::with_capacity(rec.relative.len());
-    let mut posed: Vec<crate::outputs::mcap_log::PosedFrame> = Vec::new();
-    for (frame, t, kf, rel) in &rec.relative {
-        let Some((map, k)) = kf_map.get(kf) else {
-            rec.discarded.push(crate::outputs::DiscardedPose {
-                frame: *frame,
-                t: *t,
-                reason: "its map was discarded: a map lost on the frame after its first holds one view no other frame confirmed (a false frame)".into(),
-            });
-            continue;
-        };
-        // Final's batch refinement may have re-estimated the frame.
-        let rel = machine
-            .refined_frames
-            .get(frame)
-            .filter(|(k, _)| k == kf)
-            .map_or(rel, |(_, r)| r);
-        let pose_wc = k.pose_from_relative(rel).inverse();
-        frame_map.insert(*frame, *map);
-        pose_maps.push((*t, *map));
-        if mcap_log {
-            posed.push(crate::outputs::mcap_log::PosedFrame {
-                frame: *frame,
-                t: *t,
-                map: *map,
-                pose: pose_wc,
-            });
-        }
-        trajectory.push(StampedPose {
-            t: *t,
-            pose: pose_wc,
-        });
-    }
-    for row in rec.states.iter_mut() {
-        row.map = frame_map.get(&row.frame).copied();
-    }
-    Posed {
-        trajectory,
-        pose_maps,
-        posed,
-    }
-}
-
-/// closures.csv's rows: a candidate still pending when the run ends expired.
-fn closure_rows(machine: &StateMachine) -> Vec<ClosureRow> {
-    machine
-        .closures
-        .iter()
-        .cloned()
-        .map(|mut c| {
-            if c.verdict == "pending" {
-                c.verdict = "expired".into();
-            }
-            c
-        })
-        .collect()
-}
-
-/// keyframes.txt's rows: every keyframe's pose and map.
-fn keyframe_rows(machine: &StateMachine) -> Vec<(StampedPose, u32)> {
-    machine
-        .atlas
-        .maps
-        .values()
-        .flat_map(|m| {
-            m.keyframes.values().map(move |k| {
-                (
-                    StampedPose {
-                        t: k.t,
-                        pose: k.pose_cw.inverse(),
-                    },
-                    m.id,
-                )
-            })
-        })
-        .collect()
+    extra
 }
 
 /// What the run was set up with, for summary.json.
@@ -640,7 +443,7 @@ struct Setup {
 
 /// Everything a run ends with, for summary.json and the output files.
 struct Finished {
-    rec: Recorded,
+    rec: RunRecord,
     state: String,
     posed: Posed,
     closures: Vec<ClosureRow>,
@@ -667,7 +470,7 @@ fn summarize(
             .map_or_else(|| opts.sequence.clone(), |m| m.0.clone()),
         command: opts.command.clone(),
         sequence_frames: seq.len(),
-        frames: fin.rec.delivered,
+        frames: fin.rec.rec.delivered,
         frames_with_pose: fin.posed.trajectory.len(),
         keyframes: fin.keyframes.len(),
         maps: machine.atlas.maps.len(),
@@ -680,8 +483,8 @@ fn summarize(
         pools: machine.atlas.pools.len(),
         pools_rolled_back: machine.atlas.pools.iter().filter(|p| p.rolled_back).count(),
         controller: setup.config.controller.kind.as_str().into(),
-        poses_discarded: fin.rec.discarded.len(),
-        discarded_poses: std::mem::take(&mut fin.rec.discarded),
+        poses_discarded: fin.rec.rec.discarded.len(),
+        discarded_poses: std::mem::take(&mut fin.rec.rec.discarded),
         keyframes_discarded: machine.keyframes_discarded,
         map_keyframes: machine
             .atlas
@@ -692,11 +495,12 @@ fn summarize(
         stop_reason: machine.stop_reason.clone(),
         user_stop: fin
             .rec
+            .rec
             .user_stop
             .map(|(frame, t)| crate::outputs::UserStop {
                 frame,
                 t,
-                frames_not_processed: n - fin.rec.delivered,
+                frames_not_processed: n - fin.rec.rec.delivered,
                 refinement: machine
                     .refinement_cut
                     .clone()
@@ -723,15 +527,15 @@ fn summarize(
         } else {
             "deterministic"
         },
-        wall_time_s: wall.elapsed().as_secs_f64() + fin.rec.extraction_reused_ms / 1e3,
+        wall_time_s: wall.elapsed().as_secs_f64() + fin.rec.rec.extraction_reused_ms / 1e3,
         peak_rss_mb: peak_rss_mb(),
-        extraction_reused_s: fin.rec.extraction_reused_ms / 1e3,
-        data_duration_s: match (fin.rec.states.first(), fin.rec.states.last()) {
+        extraction_reused_s: fin.rec.rec.extraction_reused_ms / 1e3,
+        data_duration_s: match (fin.rec.rec.states.first(), fin.rec.rec.states.last()) {
             (Some(a), Some(b)) => b.t - a.t,
             _ => 0.0,
         },
         evaluation: fin.evaluation.take(),
-        error: fin.rec.failure.as_ref().map(|e| e.to_string()),
+        error: fin.rec.rec.failure.as_ref().map(|e| e.to_string()),
         frames_unreadable: fin.rec.unreadable.len(),
         unreadable_frames: std::mem::take(&mut fin.rec.unreadable),
     }
@@ -747,7 +551,7 @@ fn write_outputs(
 ) -> Result<()> {
     out.write_trajectory(&fin.posed.trajectory)?;
     out.write_keyframes(&fin.keyframes)?;
-    out.write_states(&fin.rec.states)?;
+    out.write_states(&fin.rec.rec.states)?;
     out.write_closures(&fin.closures)?;
     out.write_timing(&fin.timing)?;
     out.write_summary(summary)?;
@@ -757,7 +561,7 @@ fn write_outputs(
     if opts.mcap_log {
         crate::outputs::mcap_log::write(
             &out.path("run.mcap"),
-            &fin.rec.states,
+            &fin.rec.rec.states,
             &fin.rec.frame_stats,
             &fin.posed.posed,
         )?;

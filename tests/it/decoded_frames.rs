@@ -49,49 +49,10 @@ fn write_features(seq: &Path, path: &Path) {
     features::write(path, &s, &camera, &orb, 2).unwrap();
 }
 
-/// A small generated `desk` sequence of `frames` frames in `dir`.
-fn generated_desk(dir: &Path, frames: usize) -> PathBuf {
-    use homing_datasets::{scenarios, sensor::SensorOptions, writer};
-    let seq = dir.join("desk");
-    common::generate(
-        &scenarios::build("desk", 1).unwrap(),
-        &writer::GenOptions {
-            out: seq.clone(),
-            small: true,
-            seed: 1,
-            sensor: SensorOptions::realistic(),
-            max_frames: Some(frames),
-        },
-    );
-    seq
-}
-
-/// The two runs' outputs are byte for byte the same, over at least `min_poses` poses.
-fn same_outputs(a: &Path, b: &Path, min_poses: usize) {
-    for f in [
-        "trajectory.txt",
-        "states.csv",
-        "keyframes.txt",
-        "closures.csv",
-    ] {
-        let (x, y) = (
-            std::fs::read(a.join(f)).unwrap(),
-            std::fs::read(b.join(f)).unwrap(),
-        );
-        assert!(x == y, "{f} differs");
-    }
-    let poses = std::fs::read_to_string(b.join("trajectory.txt")).unwrap();
-    let n = poses.lines().filter(|l| !l.starts_with('#')).count();
-    assert!(
-        n >= min_poses,
-        "only {n} poses: the comparison would prove little"
-    );
-}
-
 #[test]
 fn a_run_on_decoded_frames_equals_the_run_on_the_images() {
     let tmp = tempfile::tempdir().unwrap();
-    let seq = generated_desk(tmp.path(), 40);
+    let seq = common::generated_desk(tmp.path(), 40);
     let file = tmp.path().join("desk.frames");
     write_decoded(&seq, &file, (320, 240));
     let (a, b) = (tmp.path().join("a"), tmp.path().join("b"));
@@ -99,7 +60,7 @@ fn a_run_on_decoded_frames_equals_the_run_on_the_images() {
     assert!(ok, "{stderr}");
     let (ok, stderr) = run(&seq, &b, Some(&file));
     assert!(ok, "{stderr}");
-    same_outputs(&a, &b, 30);
+    common::same_outputs(&a, &b, 30);
 }
 
 /// With false frames (extracted by the run itself) and without depth (the file's depth
@@ -107,7 +68,7 @@ fn a_run_on_decoded_frames_equals_the_run_on_the_images() {
 #[test]
 fn a_run_on_extracted_features_equals_the_run_on_the_images() {
     let tmp = tempfile::tempdir().unwrap();
-    let seq = generated_desk(tmp.path(), 40);
+    let seq = common::generated_desk(tmp.path(), 40);
     let file = tmp.path().join("desk.features");
     write_features(&seq, &file);
     let with = ["--features", file.to_str().unwrap()];
@@ -131,7 +92,7 @@ fn a_run_on_extracted_features_equals_the_run_on_the_images() {
         let (ok, stderr) = run_with(&seq, &b, &extra);
         assert!(ok, "{name}: {stderr}");
         // Monocular initialisation takes a few frames more.
-        same_outputs(&a, &b, 20);
+        common::same_outputs(&a, &b, 20);
         // The file's extraction time is counted as the run's.
         let s: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(b.join("summary.json")).unwrap())

@@ -21,6 +21,7 @@ mod report;
 mod rerun_recording;
 mod robustness;
 mod run_outputs;
+mod slam_api;
 mod slam_mono;
 mod slam_rgbd;
 mod two_view;

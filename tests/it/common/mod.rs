@@ -215,3 +215,42 @@ pub fn run_small_with_config(
         summary,
     }
 }
+
+/// A small generated `desk` sequence of `frames` frames in `dir`.
+pub fn generated_desk(dir: &Path, frames: usize) -> PathBuf {
+    use homing_datasets::{scenarios, sensor::SensorOptions, writer};
+    let seq = dir.join("desk");
+    generate(
+        &scenarios::build("desk", 1).unwrap(),
+        &writer::GenOptions {
+            out: seq.clone(),
+            small: true,
+            seed: 1,
+            sensor: SensorOptions::realistic(),
+            max_frames: Some(frames),
+        },
+    );
+    seq
+}
+
+/// The two runs' outputs are byte for byte the same, over at least `min_poses` poses.
+pub fn same_outputs(a: &Path, b: &Path, min_poses: usize) {
+    for f in [
+        "trajectory.txt",
+        "states.csv",
+        "keyframes.txt",
+        "closures.csv",
+    ] {
+        let (x, y) = (
+            std::fs::read(a.join(f)).unwrap(),
+            std::fs::read(b.join(f)).unwrap(),
+        );
+        assert!(x == y, "{f} differs");
+    }
+    let poses = std::fs::read_to_string(b.join("trajectory.txt")).unwrap();
+    let n = poses.lines().filter(|l| !l.starts_with('#')).count();
+    assert!(
+        n >= min_poses,
+        "only {n} poses: the comparison would prove little"
+    );
+}
