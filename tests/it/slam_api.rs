@@ -126,3 +126,50 @@ fn wrong_input_is_an_error_not_a_panic() {
     assert!(err(slam.track(2.0, img(), None)).contains("finished"));
     assert!(slam.finish().is_err());
 }
+
+#[test]
+fn a_saved_atlas_loads_back_in_a_second_session_that_relocalizes_in_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = common::generated_desk(dir.path(), 60);
+    let config = Config::default();
+    let (camera, _) = resolve_camera(&config, None, &seq).unwrap();
+    let frames = TumSequence::open(
+        &seq,
+        camera.width,
+        camera.height,
+        camera.depth_scale,
+        config.sequence.max_association_dt,
+        false,
+    )
+    .unwrap();
+    let atlas_path = dir.path().join("desk.atlas");
+    let mut first = Slam::new(&config, &camera).unwrap();
+    for i in 0..frames.len() {
+        let f = frames.load(i).unwrap();
+        first.track(f.t, f.rgb, f.depth).unwrap();
+    }
+    first.finish().unwrap();
+    first.save_atlas(&atlas_path).unwrap();
+    let saved_maps: Vec<_> = first.atlas().maps.keys().copied().collect();
+
+    let atlas = homing::atlas::Atlas::load(
+        &atlas_path,
+        &homing::atlas::AtlasCamera::from(&camera),
+        false,
+    )
+    .unwrap();
+    let mut second = Slam::new(&config, &camera).unwrap().with_atlas(atlas);
+    // The same place again (later stamps): the camera is found in the loaded map.
+    let mut in_loaded = 0;
+    for i in 0..20 {
+        let f = frames.load(i).unwrap();
+        let r = second.track(f.t + 100.0, f.rgb, f.depth).unwrap();
+        if r.map.is_some_and(|m| saved_maps.contains(&m)) && r.state == "Localized" {
+            in_loaded += 1;
+        }
+    }
+    assert!(
+        in_loaded >= 10,
+        "Localized in the loaded map on {in_loaded} of 20 frames"
+    );
+}
