@@ -55,6 +55,15 @@ pub struct FrameResult {
     pub pools_revoked: Vec<PoolId>,
 }
 
+/// Depth as a caller holds it, row-major at the camera's size.
+#[derive(Debug, Clone, Copy)]
+pub enum DepthBuffer<'a> {
+    /// The sensor's 16-bit units, `camera.depth_scale` per metre; 0 = no reading.
+    Units(&'a [u16]),
+    /// Metres; 0, negative or not finite = no reading.
+    Metres(&'a [f32]),
+}
+
 /// What a finished session leaves: the files `homing run` writes, as values.
 #[derive(Debug, Clone)]
 pub struct SlamOutput {
@@ -158,6 +167,56 @@ impl Slam {
             depth: if self.mono { None } else { depth },
         };
         self.process_frame(&frame, None).map(|r| r.0)
+    }
+
+    /// [`Slam::track`] on borrowed buffers: `rgb` row-major RGB, 3 bytes a pixel, at the
+    /// camera's size; `depth` likewise one value a pixel.
+    pub fn track_buffers(
+        &mut self,
+        t: f64,
+        rgb: &[u8],
+        depth: Option<DepthBuffer<'_>>,
+    ) -> Result<FrameResult> {
+        let (w, h) = (self.camera.width, self.camera.height);
+        let n = (w as usize) * (h as usize);
+        if rgb.len() != 3 * n {
+            return Err(Error::Invalid(format!(
+                "colour buffer holds {} bytes, the camera's {w}x{h} RGB image {}",
+                rgb.len(),
+                3 * n
+            )));
+        }
+        let depth_len = match depth {
+            Some(DepthBuffer::Units(d)) => Some(d.len()),
+            Some(DepthBuffer::Metres(d)) => Some(d.len()),
+            None => None,
+        };
+        if let Some(len) = depth_len
+            && len != n
+        {
+            return Err(Error::Invalid(format!(
+                "depth buffer holds {len} values, the camera's {w}x{h} image {n}"
+            )));
+        }
+        let rgb = image::RgbImage::from_raw(w, h, rgb.to_vec()).expect("length checked");
+        let depth = match depth {
+            Some(DepthBuffer::Units(d)) => Some(crate::io::tum::depth_from_units(
+                w,
+                h,
+                d,
+                self.camera.depth_scale,
+            )),
+            Some(DepthBuffer::Metres(d)) => Some(DepthImage {
+                width: w,
+                height: h,
+                data: d
+                    .iter()
+                    .map(|&m| if m.is_finite() && m > 0.0 { m } else { 0.0 })
+                    .collect(),
+            }),
+            None => None,
+        };
+        self.track(t, rgb, depth)
     }
 
     /// One delivered frame: its measurement (extracted here, or `reused` from a features

@@ -534,17 +534,18 @@ pub fn load_depth(path: &Path, width: u32, height: u32, scale: f64) -> Result<De
             ));
         }
     };
+    Ok(depth_from_units(width, height, raw.as_raw(), scale))
+}
+
+/// Depth in metres from a sensor's 16-bit units (`scale` units per metre, 0 = no reading),
+/// row-major `width` × `height` (the caller checks the length).
+pub fn depth_from_units(width: u32, height: u32, raw: &[u16], scale: f64) -> DepthImage {
     let inv = 1.0 / scale;
-    let data = raw
-        .as_raw()
-        .iter()
-        .map(|&d| (d as f64 * inv) as f32)
-        .collect();
-    Ok(DepthImage {
+    DepthImage {
         width,
         height,
-        data,
-    })
+        data: raw.iter().map(|&d| (d as f64 * inv) as f32).collect(),
+    }
 }
 
 /// Encodes depth in metres as a 16-bit PNG with `scale` units per metre (0 = invalid;

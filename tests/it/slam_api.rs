@@ -173,3 +173,57 @@ fn a_saved_atlas_loads_back_in_a_second_session_that_relocalizes_in_it() {
         "Localized in the loaded map on {in_loaded} of 20 frames"
     );
 }
+
+#[test]
+fn borrowed_buffers_track_as_images_do() {
+    use homing::slam::DepthBuffer;
+    let dir = tempfile::tempdir().unwrap();
+    let seq = common::generated_desk(dir.path(), 30);
+    let config = Config::default();
+    let (camera, _) = resolve_camera(&config, None, &seq).unwrap();
+    let frames = TumSequence::open(
+        &seq,
+        camera.width,
+        camera.height,
+        camera.depth_scale,
+        config.sequence.max_association_dt,
+        false,
+    )
+    .unwrap();
+    let mut a = Slam::new(&config, &camera).unwrap();
+    let mut units = Slam::new(&config, &camera).unwrap();
+    let mut metres = Slam::new(&config, &camera).unwrap();
+    for (i, r) in frames.frames.iter().enumerate() {
+        let f = frames.load(i).unwrap();
+        let d = f.depth.clone().unwrap();
+        // The sensor's own 16-bit image, as a driver would hand it over.
+        let raw = image::open(r.depth.as_ref().unwrap())
+            .unwrap()
+            .into_luma16()
+            .into_raw();
+        let rgb = f.rgb.as_raw().clone();
+        let ra = a.track(f.t, f.rgb, f.depth).unwrap();
+        let ru = units
+            .track_buffers(f.t, &rgb, Some(DepthBuffer::Units(&raw)))
+            .unwrap();
+        let rm = metres
+            .track_buffers(f.t, &rgb, Some(DepthBuffer::Metres(&d.data)))
+            .unwrap();
+        assert_eq!(ra.pose_wc, ru.pose_wc, "frame {i}");
+        assert_eq!(ra.pose_wc, rm.pose_wc, "frame {i}");
+    }
+    assert!(a.trajectory().len() > 20);
+    let e = units
+        .track_buffers(99.0, &[0u8; 12], None)
+        .map(|_| ())
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("colour buffer holds 12 bytes"), "{e}");
+    let rgb = vec![0u8; (3 * camera.width * camera.height) as usize];
+    let e = units
+        .track_buffers(99.0, &rgb, Some(DepthBuffer::Units(&[0u16; 5])))
+        .map(|_| ())
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("depth buffer holds 5 values"), "{e}");
+}
