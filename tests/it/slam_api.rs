@@ -4,19 +4,14 @@
 
 use crate::common;
 
-use homing::config::{Config, resolve_camera};
+use homing::config::{CameraConfig, Config, resolve_camera};
 use homing::io::tum::{FrameSource, TumSequence};
 use homing::outputs::RunOutputs;
 use homing::slam::Slam;
 use std::path::Path;
 
-/// Runs `seq` through the API frame by frame and writes the run files into `out`.
-fn run_api(
-    seq: &Path,
-    mono: bool,
-    out: &Path,
-    stop_after: Option<usize>,
-) -> homing::slam::SlamOutput {
+/// The config, camera and frames a run of `seq` uses, as `homing run [--mono]` opens them.
+fn open(seq: &Path, mono: bool) -> (Config, CameraConfig, TumSequence) {
     let mut config = Config::default();
     config.sequence.mono = mono;
     let (camera, _) = resolve_camera(&config, None, seq).unwrap();
@@ -29,6 +24,17 @@ fn run_api(
         mono,
     )
     .unwrap();
+    (config, camera, frames)
+}
+
+/// Runs `seq` through the API frame by frame and writes the run files into `out`.
+fn run_api(
+    seq: &Path,
+    mono: bool,
+    out: &Path,
+    stop_after: Option<usize>,
+) -> homing::slam::SlamOutput {
+    let (config, camera, frames) = open(seq, mono);
     let mut slam = Slam::new(&config, &camera).unwrap();
     let mut tracked = 0;
     for i in 0..frames.len() {
@@ -131,17 +137,7 @@ fn wrong_input_is_an_error_not_a_panic() {
 fn a_saved_atlas_loads_back_in_a_second_session_that_relocalizes_in_it() {
     let dir = tempfile::tempdir().unwrap();
     let seq = common::generated_desk(dir.path(), 60);
-    let config = Config::default();
-    let (camera, _) = resolve_camera(&config, None, &seq).unwrap();
-    let frames = TumSequence::open(
-        &seq,
-        camera.width,
-        camera.height,
-        camera.depth_scale,
-        config.sequence.max_association_dt,
-        false,
-    )
-    .unwrap();
+    let (config, camera, frames) = open(&seq, false);
     let atlas_path = dir.path().join("desk.atlas");
     let mut first = Slam::new(&config, &camera).unwrap();
     for i in 0..frames.len() {
@@ -179,17 +175,7 @@ fn borrowed_buffers_track_as_images_do() {
     use homing::slam::DepthBuffer;
     let dir = tempfile::tempdir().unwrap();
     let seq = common::generated_desk(dir.path(), 30);
-    let config = Config::default();
-    let (camera, _) = resolve_camera(&config, None, &seq).unwrap();
-    let frames = TumSequence::open(
-        &seq,
-        camera.width,
-        camera.height,
-        camera.depth_scale,
-        config.sequence.max_association_dt,
-        false,
-    )
-    .unwrap();
+    let (config, camera, frames) = open(&seq, false);
     let mut a = Slam::new(&config, &camera).unwrap();
     let mut units = Slam::new(&config, &camera).unwrap();
     let mut metres = Slam::new(&config, &camera).unwrap();
