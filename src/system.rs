@@ -333,7 +333,7 @@ fn frame_loop(
                 // A frame on disk that cannot be read is a failed measurement, which the state
                 // machine meets like a black frame: the run goes on.
                 Err(e) if !input.opts.strict_input => {
-                    let index = perturbed.plan.delivered[slam.recorded_mut().delivered];
+                    let index = perturbed.plan.delivered[slam.delivered()];
                     let t = input.frames.timestamp(index);
                     tracing::warn!(
                         "frame {index}: {e}: taken as a failed measurement (--strict-input stops instead)"
@@ -360,7 +360,7 @@ fn frame_loop(
                 })
                 .and_then(|f| f.take(frame.index))
                 .map(|e| (e.m, e.ms, e.weak));
-            let counts = input.opts.mcap_timing.then(|| slam.timing_mut().counts());
+            let counts = input.opts.mcap_timing.then(|| slam.timing().counts());
             let (result, m, out) = match slam.process_frame(&frame, reused) {
                 Ok(r) => r,
                 Err(e) => {
@@ -378,13 +378,8 @@ fn frame_loop(
                         tracked_inliers: result.inliers,
                         keyframes: machine.atlas.n_keyframes(),
                         maps: machine.atlas.maps.len(),
-                        timing_ms: None,
+                        timing_ms: counts.map(|c| slam.timing().since(&c)),
                     });
-            }
-            if let Some(c) = counts
-                && let Some(s) = extra.frame_stats.last_mut()
-            {
-                s.timing_ms = Some(slam.timing_mut().since(&c));
             }
             if let Some(v) = viz.as_mut() {
                 let (machine, timing) = slam.machine_and_timing();

@@ -276,13 +276,13 @@ impl Hbst {
         }
     }
 
-    /// The leaves a query scans: its own leaf first, then every leaf reached by taking the
+    /// The leaves a query scans: its own leaf (`own_leaf`, its descent) first, then every leaf reached by taking the
     /// other branch at up to `search_flips` of the splits on the way (each leaf once: a stored
     /// descriptor sits in exactly one leaf, so no match is found twice). With `f` flips and
     /// depth `d` that is Σ_{k≤f} C(d, k) leaves: 1, ~13, ~80 at the real trees' depth of 12.
-    fn probe_leaves(&self, w: &Words, out: &mut Vec<u32>) {
+    fn probe_leaves(&self, w: &Words, own_leaf: u32, out: &mut Vec<u32>) {
         out.clear();
-        out.push(self.descend(w));
+        out.push(own_leaf);
         if self.params.search_flips == 0 {
             return;
         }
@@ -346,12 +346,7 @@ impl Hbst {
         let mut hits = Vec::with_capacity(2 * self.params.max_leaf_size);
         let mut probe = Vec::new();
         for (qi, (q, &own_leaf)) in qs.iter().zip(leaves).enumerate() {
-            if self.params.search_flips == 0 {
-                probe.clear();
-                probe.push(own_leaf);
-            } else {
-                self.probe_leaves(q, &mut probe);
-            }
+            self.probe_leaves(q, own_leaf, &mut probe);
             for &l in &probe {
                 let leaf = &self.leaves[l as usize];
                 hits.clear();
