@@ -5,7 +5,6 @@ use clap::{Args, Parser, Subcommand};
 use homing::config::{Config, ControllerKind};
 use homing::eval::{self, Alignment, RpeUnit};
 use homing::io::perturb::{DepthShift, DropSpec, FaultRate, FaultSpec, PerturbationSpec};
-use homing::io::tum::read_trajectory;
 use homing::system::{RunOptions, run};
 use std::path::PathBuf;
 use tracing_subscriber::EnvFilter;
@@ -719,67 +718,30 @@ fn cmd_run(a: RunArgs, quiet: bool) -> Result<()> {
     Ok(())
 }
 
-fn cmd_eval(mut a: EvalArgs) -> Result<()> {
-    if let Some(run) = &a.run {
-        if a.est.is_none() {
-            a.est = Some(run.join("trajectory.txt"));
-        }
-        if a.gt.is_none() {
-            a.gt = run_sequence(run)?.map(|d| d.join("groundtruth.txt"));
-        }
-    }
-    let (Some(gt_path), Some(est_path)) = (a.gt.clone(), a.est.clone()) else {
-        bail!("give --gt and --est, or --run OUTDIR (whose summary.json names the sequence)");
-    };
-    let gt = read_trajectory(&gt_path)?;
-    let est = read_trajectory(&est_path)?;
-    if gt.is_empty() {
-        bail!("{}: holds no poses", gt_path.display());
-    }
-    if est.is_empty() {
-        bail!("{}: holds no poses", est_path.display());
-    }
-    let run_eval = match &a.run {
-        Some(run) => {
-            let closures = homing::outputs::read_closures(&run.join("closures.csv"))?;
-            let maps = homing::outputs::read_state_maps(&run.join("states.csv"))?;
-            let (per_map, largest) = eval::run::per_map_ate(&gt, &est, &maps, a.align, a.max_dt);
-            let mono = (a.align == Alignment::Sim3)
-                .then(|| eval::run::MonoScales::from_maps(&per_map, largest));
-            let check = eval::run::check_closures(&closures, &gt, a.max_dt, mono.as_ref());
-            Some((check, per_map, largest))
-        }
-        None => None,
-    };
-    let assoc = eval::associate_and_align(&gt, &est, a.align, a.max_dt)?;
-    let ate = eval::ate(&assoc, a.align);
-    let rpe = eval::rpe(&assoc, a.rpe_delta, a.rpe_unit, a.all_pairs);
-    let coverage = coverage_for(&a, &gt, &est)?;
+fn cmd_eval(a: EvalArgs) -> Result<()> {
+    let r = eval::report::evaluate(&eval::report::EvalRequest {
+        gt: a.gt,
+        est: a.est,
+        run: a.run.clone(),
+        align: a.align,
+        rpe_delta: a.rpe_delta,
+        rpe_unit: a.rpe_unit,
+        all_pairs: a.all_pairs,
+        max_dt: a.max_dt,
+        sequence: a.sequence,
+    })?;
     if let Some(p) = &a.plot {
-        let title = format!("{} vs {}", est_path.display(), gt_path.display());
-        eval::plot::plot_ate(p, &gt, &assoc, &ate, &title)?;
+        let title = format!("{} vs {}", r.est_path.display(), r.gt_path.display());
+        eval::plot::plot_ate(p, &r.gt_poses, &r.associated, &r.ate, &title)?;
     }
     if a.json {
-        let v = serde_json::json!({
-            "ate": ate,
-            "rpe": rpe.as_ref().ok(),
-            "rpe_error": rpe.as_ref().err().map(|e| e.to_string()),
-            "coverage": coverage,
-            "estimate_poses": est.len(),
-            "groundtruth_poses": gt.len(),
-            "closures": run_eval.as_ref().map(|r| &r.0),
-            "maps": run_eval.as_ref().map(|r| &r.1),
-            "largest_map": run_eval.as_ref().and_then(|r| r.2),
-        });
-        println!("{}", serde_json::to_string_pretty(&v)?);
+        println!("{}", serde_json::to_string_pretty(&r)?);
         return Ok(());
     }
-    let s = &ate.stats;
+    let s = &r.ate.stats;
     println!(
         "ATE ({:?}-aligned, {} associated poses of {} estimated)",
-        a.align,
-        ate.pairs,
-        est.len()
+        a.align, r.ate.pairs, r.estimate_poses
     );
     println!("  rmse   {:.6} m", s.rmse);
     println!("  mean   {:.6} m", s.mean);
@@ -788,21 +750,21 @@ fn cmd_eval(mut a: EvalArgs) -> Result<()> {
     println!("  min    {:.6} m", s.min);
     println!("  max    {:.6} m", s.max);
     if a.align == Alignment::Sim3 {
-        println!("  scale  {:.6}", ate.scale);
+        println!("  scale  {:.6}", r.ate.scale);
     }
-    match &rpe {
-        Ok(r) => {
-            println!("RPE (delta {} {:?}, {} pairs)", r.delta, r.unit, r.pairs);
-            println!("  trans rmse {:.6} m", r.trans.rmse);
-            println!("  rot   rmse {:.6} deg", r.rot_deg.rmse);
+    match (&r.rpe, &r.rpe_error) {
+        (Some(p), _) => {
+            println!("RPE (delta {} {:?}, {} pairs)", p.delta, p.unit, p.pairs);
+            println!("  trans rmse {:.6} m", p.trans.rmse);
+            println!("  rot   rmse {:.6} deg", p.rot_deg.rmse);
         }
-        Err(e) => println!("RPE: {e}"),
+        (None, e) => println!("RPE: {}", e.as_deref().unwrap_or("none")),
     }
-    match coverage {
+    match r.coverage {
         Some(c) => println!("coverage {:.2} %", 100.0 * c),
         None => println!("coverage: unknown (pass --sequence DIR)"),
     }
-    if let Some((c, per_map, largest)) = &run_eval {
+    if let (Some(c), Some(per_map)) = (&r.closures, &r.maps) {
         println!(
             "closures: {} candidates ({} wrong); accepted {} ({} wrong{}), rolled back {} ({} wrong), rejected {} ({} wrong), expired {} ({} wrong)",
             c.candidates,
@@ -825,7 +787,7 @@ fn cmd_eval(mut a: EvalArgs) -> Result<()> {
             println!(
                 "map {}{}: {} poses, ATE rmse {}",
                 m.map,
-                if Some(m.map) == *largest {
+                if Some(m.map) == r.largest_map {
                     " (largest)"
                 } else {
                     ""
@@ -837,46 +799,6 @@ fn cmd_eval(mut a: EvalArgs) -> Result<()> {
         }
     }
     Ok(())
-}
-
-/// The sequence folder a run's summary.json names.
-fn run_sequence(run: &std::path::Path) -> Result<Option<PathBuf>> {
-    let summary = run.join("summary.json");
-    if !summary.is_file() {
-        return Ok(None);
-    }
-    let text = std::fs::read_to_string(&summary)
-        .with_context(|| format!("{}: cannot read", summary.display()))?;
-    let v: serde_json::Value = serde_json::from_str(&text)
-        .with_context(|| format!("{}: not valid JSON", summary.display()))?;
-    Ok(v.get("sequence")
-        .and_then(|s| s.as_str())
-        .map(PathBuf::from))
-}
-
-/// Coverage needs the frames the estimate could have had: from --sequence, or from the
-/// summary.json that `homing run` writes next to its trajectory.
-fn coverage_for(
-    a: &EvalArgs,
-    gt: &[homing::io::tum::StampedPose],
-    est: &[homing::io::tum::StampedPose],
-) -> Result<Option<f64>> {
-    let seq_dir = match (&a.sequence, &a.est) {
-        (Some(d), _) => Some(d.clone()),
-        (None, Some(est)) => run_sequence(est.parent().unwrap_or(std::path::Path::new(".")))?,
-        (None, None) => None,
-    };
-    let Some(dir) = seq_dir else { return Ok(None) };
-    let rgb = dir.join("rgb.txt");
-    if !rgb.is_file() {
-        return Ok(None);
-    }
-    let stamps: Vec<f64> = homing::io::tum::read_list(&rgb)?
-        .iter()
-        .map(|e| e.t)
-        .collect();
-    let eligible = eval::eligible_stamps(&stamps, gt, a.max_dt);
-    Ok(Some(eval::coverage(&eligible, est, a.max_dt)))
 }
 
 fn cmd_tum_to_mcap(dir: &std::path::Path, out: &std::path::Path, depth_mm: bool) -> Result<()> {

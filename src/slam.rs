@@ -138,6 +138,9 @@ impl Slam {
         rgb: image::RgbImage,
         depth: Option<DepthImage>,
     ) -> Result<FrameResult> {
+        if self.finished {
+            return Err(Error::Invalid("the session is finished".into()));
+        }
         if !t.is_finite() || self.last_t.is_some_and(|l| t <= l) {
             return Err(Error::Invalid(format!(
                 "frame stamp {t} does not follow the previous one ({})",
@@ -332,6 +335,16 @@ impl Slam {
                 })
             })
             .collect()
+    }
+
+    /// The camera the session was made for.
+    pub fn camera(&self) -> &CameraConfig {
+        &self.camera
+    }
+
+    /// Whether the session is monocular (depth given to `track` is ignored).
+    pub fn is_mono(&self) -> bool {
+        self.mono
     }
 
     /// The maps as they stand: keyframe poses and map points.

@@ -9,6 +9,7 @@
 //!   with the pose nearest to `t_i + delta`, when that is within 10 % of delta.
 
 pub mod plot;
+pub mod report;
 pub mod run;
 pub mod timeline;
 
