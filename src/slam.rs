@@ -234,9 +234,6 @@ impl Slam {
         if self.finished {
             return Err(Error::Invalid("the session is finished".into()));
         }
-        self.rec.delivered += 1;
-        self.next_index = frame.index + 1;
-        self.last_t = Some(frame.t);
         let t_frame = std::time::Instant::now();
         let timing = &mut self.timing;
         let reused_ms = reused.as_ref().map_or(0.0, |r| r.1);
@@ -253,6 +250,11 @@ impl Slam {
             }
             None => timing.time("preprocess", || self.pre.process(frame))?,
         };
+        // Counted once the frame could be processed: a frame that fails here leaves the
+        // session as it was, so the caller may give the stamp again.
+        self.rec.delivered += 1;
+        self.next_index = frame.index + 1;
+        self.last_t = Some(frame.t);
         let pre_ms = timing.last("preprocess").unwrap_or(0.0);
         let tracked = timing.count("track");
         let pools_before = self.machine.atlas.pools.len();

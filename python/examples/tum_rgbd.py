@@ -1,7 +1,7 @@
 """A TUM RGB-D folder through homing.Slam, frame by frame, as your own camera loop would do it:
 images decoded with Pillow into numpy arrays, the state timeline printed as it happens, the
-final trajectory written in TUM format and evaluated (with evo when it is installed, else with
-homing.evaluate, which computes what evo computes).
+final trajectory written in TUM format and evaluated with homing.evaluate (which computes what
+evo computes), and with evo's own evo_ape when evo is installed.
 
     pip install ./python pillow            # evo too, if you want its numbers: pip install evo
     python python/examples/tum_rgbd.py data/rgbd_dataset_freiburg1_xyz [--mono] [--out est.txt]
@@ -49,7 +49,7 @@ def frames(folder, mono, max_dt=0.02):
     ts_rgb = np.array([t for t, _ in rgb])
     ts_depth = np.array([t for t, _ in depth])
     dt = np.abs(ts_rgb[:, None] - ts_depth[None, :])
-    i, j = np.nonzero(dt <= max_dt)
+    i, j = np.nonzero(dt < max_dt)
     used_rgb, used_depth, pairs = set(), set(), []
     for k in np.argsort(dt[i, j], kind="stable"):
         a, b = int(i[k]), int(j[k])
@@ -99,8 +99,8 @@ def main():
         return
     align = "sim3" if args.mono else "se3"
     e = homing.evaluate(gt, args.out, align=align, sequence=args.sequence)
-    print(f"homing.evaluate: ATE rmse {e['ate']['stats']['rmse'] * 100:.2f} cm, "
-          f"coverage {e['coverage'] * 100:.1f} %")
+    coverage = "unknown" if e["coverage"] is None else f"{e['coverage'] * 100:.1f} %"
+    print(f"homing.evaluate: ATE rmse {e['ate']['stats']['rmse'] * 100:.2f} cm, coverage {coverage}")
     if shutil.which("evo_ape"):
         flags = ["-as"] if args.mono else ["-a"]
         subprocess.run(["evo_ape", "tum", str(gt), str(args.out), *flags], check=False)

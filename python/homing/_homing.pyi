@@ -1,6 +1,7 @@
 """Type stubs of the extension module (re-exported by ``homing``)."""
 
 import os
+import pathlib
 from typing import Any, Dict, Iterator, List, Mapping, Optional, Sequence, Tuple, Union
 
 import numpy as np
@@ -11,6 +12,8 @@ __version__: str
 _Path = Union[str, "os.PathLike[str]"]
 _Pose = npt.NDArray[np.float64]  # 4x4, camera to world
 _TumRows = npt.NDArray[np.float64]  # N x 8: t tx ty tz qx qy qz qw
+_Depth = Union[npt.NDArray[np.uint16], npt.NDArray[np.float32], npt.NDArray[np.float64]]
+_Frame = Tuple[float, npt.NDArray[np.uint8], Optional[npt.NDArray[np.float32]]]
 
 class Camera:
     """A pinhole camera with radial-tangential distortion: the ``[camera]`` table of a
@@ -113,7 +116,8 @@ class Slam:
         """``config``: None (the defaults), a TOML file or a dict of its keys (unknown keys
         are refused). ``camera``: a Camera, a TOML file with a ``[camera]`` table (a
         sequence's camera.toml) or a dict of its keys; None takes the config's ``[camera]``.
-        ``mono`` overrides the config's ``sequence.mono``. ``threaded``: local BA on its own
+        ``mono`` overrides the config's ``sequence.mono``. Dict values must be what JSON holds
+        (numbers, strings, booleans, lists, dicts). ``threaded``: local BA on its own
         thread (faster, not bit-reproducible); the default is deterministic."""
     @staticmethod
     def load_map(
@@ -130,14 +134,14 @@ class Slam:
         self,
         t: float,
         rgb: npt.NDArray[np.uint8],
-        depth: Optional[Union[npt.NDArray[np.uint16], npt.NDArray[np.float32]]] = None,
+        depth: Optional[_Depth] = None,
         *,
         bgr: bool = False,
     ) -> FrameResult:
         """One frame. ``t``: seconds, later than the previous frame's. ``rgb``: HxWx3 uint8,
         RGB order (``bgr=True`` for OpenCV's). ``depth``: HxW uint16 in the sensor's units
-        (``camera.depth_scale`` per metre) or float32 metres, 0 = no reading; None = no
-        depth. Raises ValueError for a wrong dtype or shape, an image size other than the
+        (``camera.depth_scale`` per metre) or float32/float64 metres, 0 = no reading; None =
+        no depth. Arrays of any strides are accepted (copied when not C-contiguous). Raises ValueError for a wrong dtype or shape, an image size other than the
         camera's, a stamp that does not follow the previous one, or a finished session. The
         GIL is released while the frame is processed."""
     def trajectory(self) -> _TumRows:
@@ -164,10 +168,13 @@ class Slam:
     ) -> Tuple[_TumRows, Dict[str, Any]]:
         """The user's stop (the Interruptible state): Final with its refinement cut short;
         returns what ``finish`` returns."""
+    def result(self, out_dir: Optional[_Path] = None) -> Tuple[_TumRows, Dict[str, Any]]:
+        """What ``finish`` or ``request_stop`` returned, again (e.g. after writing to
+        ``out_dir`` failed); ValueError before the session is finished."""
     def save_map(self, path: _Path) -> None:
         """Saves the atlas, atomically."""
 
-class TumSequence(Sequence[Tuple[float, npt.NDArray[np.uint8], Optional[npt.NDArray[np.float32]]]]):
+class TumSequence:
     """A TUM RGB-D folder read as ``homing run`` reads it. ``seq[i]`` is ``(t, rgb, depth)``:
     rgb HxWx3 uint8, depth HxW float32 metres (None when monocular)."""
 
@@ -182,8 +189,9 @@ class TumSequence(Sequence[Tuple[float, npt.NDArray[np.uint8], Optional[npt.NDAr
         """``camera`` None: DIR/camera.toml, else TUM's from the folder name. Raises
         FileNotFoundError / ValueError for a missing or malformed folder."""
     def __len__(self) -> int: ...
-    def __getitem__(self, i: int) -> Tuple[float, npt.NDArray[np.uint8], Optional[npt.NDArray[np.float32]]]: ...  # type: ignore[override]
-    def __iter__(self) -> Iterator[Tuple[float, npt.NDArray[np.uint8], Optional[npt.NDArray[np.float32]]]]: ...
+    def __getitem__(self, i: int) -> _Frame:
+        """Frame ``i`` (negative counts from the end); IndexError past the end."""
+    def __iter__(self) -> Iterator[_Frame]: ...
     @property
     def camera(self) -> Camera: ...
     @property
@@ -207,11 +215,15 @@ def run(
     save_map: Optional[_Path] = None,
     threaded: bool = False,
     strict_input: bool = False,
+    controller: Optional[str] = None,
+    no_loop_closing: bool = False,
+    mcap_log: bool = False,
 ) -> Dict[str, Any]:
-    """``homing run``: a whole sequence, the run files written into ``out_dir``; returns
+    """``homing run`` on a TUM folder: the run files written into ``out_dir``; returns
     summary.json as a dict. Options as the program's: drops like ``["229:259"]``, faults
     like ``["black@229-258"]``, fault_rates like ``["foreign:0.05"]``, depth_shift like
-    ``"3"`` or ``"2,-1"``."""
+    ``"3"`` or ``"2,-1"``, controller "ours" (default), "orbslam2", "proslam" or "ldso". The
+    GIL is released during the run; Ctrl-C takes effect when it returns."""
 
 def evaluate(
     gt: Optional[_Path] = None,
@@ -237,6 +249,6 @@ def synth(
     seed: int = 1,
     max_frames: Optional[int] = None,
     clean: bool = False,
-) -> List[str]:
+) -> List[pathlib.Path]:
     """Renders a synthetic scenario (desk, loop, aliasing, revisit, case-study) into TUM
     folders with ground truth, as ``homing-datasets synth`` does; returns the folders."""

@@ -40,9 +40,27 @@ fn from_py<T: serde::de::DeserializeOwned>(obj: &Bound<'_, PyAny>, what: &str) -
     let py = obj.py();
     let text: String = py
         .import("json")?
-        .call_method1("dumps", (obj,))?
+        .call_method1("dumps", (obj,))
+        .map_err(|e| {
+            PyValueError::new_err(format!(
+                "{what}: values must be numbers, strings, booleans, lists or tables: {e}"
+            ))
+        })?
         .extract()?;
     serde_json::from_str(&text).map_err(|e| PyValueError::new_err(format!("{what}: {e}")))
+}
+
+/// A mapping (a dict or any other) as a dict; `None` for anything else.
+fn as_dict<'py>(obj: &Bound<'py, PyAny>) -> PyResult<Option<Bound<'py, PyAny>>> {
+    if obj.is_instance_of::<PyDict>() {
+        return Ok(Some(obj.clone()));
+    }
+    if obj.cast::<pyo3::types::PyMapping>().is_ok() {
+        return Ok(Some(
+            obj.py().get_type::<PyDict>().call1((obj,))?.into_any(),
+        ));
+    }
+    Ok(None)
 }
 
 /// The config a caller gives: none (the defaults), a TOML file, or a dict of the file's keys.
@@ -50,8 +68,8 @@ fn config_from(obj: Option<&Bound<'_, PyAny>>) -> PyResult<Config> {
     let Some(obj) = obj.filter(|o| !o.is_none()) else {
         return Ok(Config::default());
     };
-    if obj.is_instance_of::<PyDict>() {
-        let cfg: Config = from_py(obj, "config")?;
+    if let Some(d) = as_dict(obj)? {
+        let cfg: Config = from_py(&d, "config")?;
         cfg.validate()
             .map_err(|(key, msg)| PyValueError::new_err(format!("config: {key}: {msg}")))?;
         return Ok(cfg);
@@ -76,8 +94,8 @@ fn camera_from(obj: Option<&Bound<'_, PyAny>>, config: &Config) -> PyResult<Came
     if let Ok(c) = obj.cast::<Camera>() {
         return Ok(c.get().inner.clone());
     }
-    if obj.is_instance_of::<PyDict>() {
-        return checked_camera(from_py(obj, "camera")?);
+    if let Some(d) = as_dict(obj)? {
+        return checked_camera(from_py(&d, "camera")?);
     }
     let path: PathBuf = obj.extract().map_err(|_| {
         PyValueError::new_err("camera must be a homing.Camera, a path to a TOML file or a dict")
@@ -101,6 +119,23 @@ fn checked_camera(cam: CameraConfig) -> PyResult<CameraConfig> {
     cfg.validate()
         .map_err(|(key, msg)| PyValueError::new_err(format!("{key}: {msg}")))?;
     Ok(cfg.camera.expect("set above"))
+}
+
+/// A sequence folder must be there before anything is read from it (or guessed from its name).
+fn sequence_folder(dir: &Path) -> PyResult<()> {
+    if !dir.exists() {
+        return Err(PyFileNotFoundError::new_err(format!(
+            "{}: no such folder",
+            dir.display()
+        )));
+    }
+    if !dir.is_dir() {
+        return Err(PyValueError::new_err(format!(
+            "{}: is not a folder",
+            dir.display()
+        )));
+    }
+    Ok(())
 }
 
 /// A pose as a 4×4 matrix (camera to world).
@@ -189,8 +224,8 @@ impl Camera {
         fy: f64,
         cx: f64,
         cy: f64,
-        width: u32,
-        height: u32,
+        width: i64,
+        height: i64,
         depth_scale: f64,
         k1: f64,
         k2: f64,
@@ -202,6 +237,15 @@ impl Camera {
         virtual_baseline_m: f64,
         name: String,
     ) -> PyResult<Self> {
+        let size = |what: &str, v: i64| {
+            u32::try_from(v)
+                .ok()
+                .filter(|&v| (1..=16384).contains(&v))
+                .ok_or_else(|| {
+                    PyValueError::new_err(format!("camera.{what} must be 1 to 16384, got {v}"))
+                })
+        };
+        let (width, height) = (size("width", width)?, size("height", height)?);
         let inner = checked_camera(CameraConfig {
             name,
             fx,
@@ -227,6 +271,7 @@ impl Camera {
     /// from the folder's name.
     #[staticmethod]
     fn from_sequence(dir: PathBuf) -> PyResult<Self> {
+        sequence_folder(&dir)?;
         let (inner, _) = resolve_camera(&Config::default(), None, &dir).map_err(py_err)?;
         Ok(Self { inner })
     }
@@ -387,17 +432,43 @@ fn rgb_bytes(a: &Bound<'_, PyAny>, cam: &CameraConfig, bgr: bool) -> PyResult<Ve
             arr.shape()
         )));
     }
-    let ro = arr.readonly();
-    let mut v = match ro.as_slice() {
-        Ok(s) => s.to_vec(),
-        Err(_) => ro.as_array().iter().copied().collect(),
-    };
+    let mut v = values(arr)?;
     if bgr {
         for px in v.chunks_exact_mut(3) {
             px.swap(0, 2);
         }
     }
     Ok(v)
+}
+
+/// An array's values in row-major order. Read in place only when it is C-contiguous and
+/// aligned; anything else (a slice, a field of a structured array, a buffer at an odd offset)
+/// is first made so by numpy (`numpy.require(a, requirements="CA")`), never reinterpreted.
+fn values<T: numpy::Element + Copy>(arr: &Bound<'_, PyArrayDyn<T>>) -> PyResult<Vec<T>> {
+    let aligned = (arr.data() as usize).is_multiple_of(std::mem::align_of::<T>());
+    if arr.is_c_contiguous() && aligned {
+        let ro = arr
+            .try_readonly()
+            .map_err(|e| PyValueError::new_err(format!("the array cannot be read: {e}")))?;
+        return Ok(ro
+            .as_slice()
+            .map_err(|e| PyValueError::new_err(e.to_string()))?
+            .to_vec());
+    }
+    let py = arr.py();
+    let copy = py
+        .import("numpy")?
+        .call_method1("require", (arr, py.None(), "CA"))?;
+    let copy = copy
+        .cast::<PyArrayDyn<T>>()
+        .map_err(|e| PyValueError::new_err(e.to_string()))?;
+    let ro = copy
+        .try_readonly()
+        .map_err(|e| PyValueError::new_err(format!("the array cannot be read: {e}")))?;
+    Ok(ro
+        .as_slice()
+        .map_err(|e| PyValueError::new_err(e.to_string()))?
+        .to_vec())
 }
 
 /// Depth as the camera's size needs it: the sensor's uint16 units, or metres.
@@ -417,25 +488,18 @@ fn depth_values(a: &Bound<'_, PyAny>, cam: &CameraConfig) -> PyResult<Depth> {
             )))
         }
     };
-    fn values<T: numpy::Element + Copy>(arr: &Bound<'_, PyArrayDyn<T>>) -> Vec<T> {
-        let ro = arr.readonly();
-        match ro.as_slice() {
-            Ok(s) => s.to_vec(),
-            Err(_) => ro.as_array().iter().copied().collect(),
-        }
-    }
     if let Ok(arr) = a.cast::<PyArrayDyn<u16>>() {
         shape_ok(arr.shape())?;
-        return Ok(Depth::Units(values(arr)));
+        return Ok(Depth::Units(values(arr)?));
     }
     if let Ok(arr) = a.cast::<PyArrayDyn<f32>>() {
         shape_ok(arr.shape())?;
-        return Ok(Depth::Metres(values(arr)));
+        return Ok(Depth::Metres(values(arr)?));
     }
     if let Ok(arr) = a.cast::<PyArrayDyn<f64>>() {
         shape_ok(arr.shape())?;
         return Ok(Depth::Metres(
-            values(arr).into_iter().map(|m| m as f32).collect(),
+            values(arr)?.into_iter().map(|m| m as f32).collect(),
         ));
     }
     Err(PyValueError::new_err(format!(
@@ -474,15 +538,50 @@ struct Slam {
     inner: Mutex<RsSlam>,
     camera: CameraConfig,
     mono: bool,
+    /// What Final gave, kept so that a failed write of the files loses nothing (`result`).
+    output: Mutex<Option<SlamOutput>>,
 }
 
 impl Slam {
-    fn with<R>(&self, f: impl FnOnce(&mut RsSlam) -> R) -> PyResult<R> {
-        let mut s = self
-            .inner
+    /// Runs `f` on the session without the GIL: other Python threads go on meanwhile, also
+    /// while this one waits for another thread's frame. A panic (a bug) becomes a
+    /// `RuntimeError` instead of unwinding into Python.
+    fn with<R: Send>(
+        &self,
+        py: Python<'_>,
+        f: impl FnOnce(&mut RsSlam) -> R + Send,
+    ) -> PyResult<R> {
+        py.detach(|| {
+            let mut s = self
+                .inner
+                .lock()
+                .map_err(|_| PyRuntimeError::new_err("the session failed earlier (a bug)"))?;
+            std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| f(&mut s)))
+                .map_err(|_| PyRuntimeError::new_err("homing failed on this call (a bug)"))
+        })
+    }
+
+    /// Final (by end of data or the user's stop), then its output. The output folder is made
+    /// first, so a folder that cannot be made fails before the session ends; what Final gave
+    /// is kept for `result`.
+    fn end<'py>(
+        &self,
+        py: Python<'py>,
+        out_dir: Option<PathBuf>,
+        stop: bool,
+    ) -> PyResult<(Bound<'py, PyArray2<f64>>, Bound<'py, PyDict>)> {
+        if let Some(dir) = &out_dir {
+            RunOutputs::create(dir).map_err(py_err)?;
+        }
+        let out = self
+            .with(py, |s| if stop { s.request_stop() } else { s.finish() })?
+            .map_err(py_err)?;
+        *self
+            .output
             .lock()
-            .map_err(|_| PyRuntimeError::new_err("the session failed earlier"))?;
-        Ok(f(&mut s))
+            .map_err(|_| PyRuntimeError::new_err("the session failed earlier (a bug)"))? =
+            Some(out.clone());
+        self.output(py, out, out_dir)
     }
 
     /// The output a finished session gives, as (trajectory, summary); the run files written to
@@ -502,9 +601,9 @@ impl Slam {
         }
         let d = PyDict::new(py);
         d.set_item("final_state", &out.final_state)?;
-        d.set_item("frames", self.with(|s| s.delivered())?)?;
+        d.set_item("frames", self.with(py, |s| s.delivered())?)?;
         d.set_item("poses", out.trajectory.len())?;
-        d.set_item("maps", self.with(|s| s.atlas().maps.len())?)?;
+        d.set_item("maps", self.with(py, |s| s.atlas().maps.len())?)?;
         d.set_item("trajectory_frames", out.trajectory_frames.clone())?;
         d.set_item("trajectory_maps", out.trajectory_maps.clone())?;
         let kf: Vec<StampedPose> = out.keyframes.iter().map(|(p, _)| *p).collect();
@@ -548,6 +647,7 @@ impl Slam {
             inner: Mutex::new(inner),
             camera,
             mono: config.sequence.mono,
+            output: Mutex::new(None),
         })
     }
 
@@ -572,6 +672,7 @@ impl Slam {
             inner: Mutex::new(inner.with_atlas(atlas)),
             camera: s.camera,
             mono: s.mono,
+            output: Mutex::new(None),
         })
     }
 
@@ -593,17 +694,15 @@ impl Slam {
             Some(d) => Some(depth_values(d, &self.camera)?),
             None => None,
         };
-        let (r, ms) = py.detach(|| {
-            self.with(|s| {
-                let start = Instant::now();
-                let buf = match &depth {
-                    Some(Depth::Units(v)) => Some(DepthBuffer::Units(v)),
-                    Some(Depth::Metres(v)) => Some(DepthBuffer::Metres(v)),
-                    None => None,
-                };
-                let r = s.track_buffers(t, &rgb, buf);
-                (r, start.elapsed().as_secs_f64() * 1e3)
-            })
+        let (r, ms) = self.with(py, |s| {
+            let start = Instant::now();
+            let buf = match &depth {
+                Some(Depth::Units(v)) => Some(DepthBuffer::Units(v)),
+                Some(Depth::Metres(v)) => Some(DepthBuffer::Metres(v)),
+                None => None,
+            };
+            let r = s.track_buffers(t, &rgb, buf);
+            (r, start.elapsed().as_secs_f64() * 1e3)
         })?;
         Ok(FrameResult {
             inner: r.map_err(py_err)?,
@@ -614,7 +713,7 @@ impl Slam {
     /// Every frame posed so far, as an N×8 array of TUM rows (t tx ty tz qx qy qz qw, camera
     /// to world), with the corrections made so far applied.
     fn trajectory<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        let poses = self.with(|s| s.trajectory())?;
+        let poses = self.with(py, |s| s.trajectory())?;
         Ok(tum_rows(py, &poses))
     }
 
@@ -629,7 +728,7 @@ impl Slam {
             kfs: Vec<StampedPose>,
             pts: Vec<[f64; 3]>,
         }
-        let maps: Vec<MapCopy> = self.with(|s| {
+        let maps: Vec<MapCopy> = self.with(py, |s| {
             s.atlas()
                 .maps
                 .values()
@@ -668,8 +767,8 @@ impl Slam {
 
     /// Frames given so far.
     #[getter]
-    fn frames(&self) -> PyResult<usize> {
-        self.with(|s| s.delivered())
+    fn frames(&self, py: Python<'_>) -> PyResult<usize> {
+        self.with(py, |s| s.delivered())
     }
 
     #[getter]
@@ -685,16 +784,15 @@ impl Slam {
     }
 
     /// End of data: Final (its refinement), then (trajectory N×8, summary dict). With
-    /// `out_dir`, also writes trajectory.txt, keyframes.txt, states.csv and closures.csv there,
-    /// as `homing run` does.
+    /// `out_dir`, also writes trajectory.txt, keyframes.txt, states.csv and closures.csv there
+    /// as `homing run` writes them (not its summary.json and timing.csv).
     #[pyo3(signature = (out_dir = None))]
     fn finish<'py>(
         &self,
         py: Python<'py>,
         out_dir: Option<PathBuf>,
     ) -> PyResult<(Bound<'py, PyArray2<f64>>, Bound<'py, PyDict>)> {
-        let out = py.detach(|| self.with(|s| s.finish()))?.map_err(py_err)?;
-        self.output(py, out, out_dir)
+        self.end(py, out_dir, false)
     }
 
     /// The user's stop (Interruptible): Final with its refinement cut short, then what
@@ -705,21 +803,33 @@ impl Slam {
         py: Python<'py>,
         out_dir: Option<PathBuf>,
     ) -> PyResult<(Bound<'py, PyArray2<f64>>, Bound<'py, PyDict>)> {
-        let out = py
-            .detach(|| self.with(|s| s.request_stop()))?
-            .map_err(py_err)?;
+        self.end(py, out_dir, true)
+    }
+
+    /// What the finished session gave, again (e.g. after writing to `out_dir` failed).
+    #[pyo3(signature = (out_dir = None))]
+    fn result<'py>(
+        &self,
+        py: Python<'py>,
+        out_dir: Option<PathBuf>,
+    ) -> PyResult<(Bound<'py, PyArray2<f64>>, Bound<'py, PyDict>)> {
+        let out = self
+            .output
+            .lock()
+            .map_err(|_| PyRuntimeError::new_err("the session failed earlier (a bug)"))?
+            .clone()
+            .ok_or_else(|| PyValueError::new_err("the session is not finished"))?;
         self.output(py, out, out_dir)
     }
 
     /// Saves the atlas (written atomically) for a later session (`Slam.load_map`,
     /// `homing run --load-map`).
     fn save_map(&self, py: Python<'_>, path: PathBuf) -> PyResult<()> {
-        py.detach(|| self.with(|s| s.save_atlas(&path)))?
-            .map_err(py_err)
+        self.with(py, |s| s.save_atlas(&path))?.map_err(py_err)
     }
 
-    fn __repr__(&self) -> PyResult<String> {
-        let (frames, maps) = self.with(|s| (s.delivered(), s.atlas().maps.len()))?;
+    fn __repr__(&self, py: Python<'_>) -> PyResult<String> {
+        let (frames, maps) = self.with(py, |s| (s.delivered(), s.atlas().maps.len()))?;
         Ok(format!(
             "homing.Slam({}, {}x{}, {frames} frames, {maps} maps)",
             if self.mono { "monocular" } else { "RGB-D" },
@@ -749,6 +859,7 @@ impl TumSequence {
         mono: bool,
         max_association_dt: f64,
     ) -> PyResult<Self> {
+        sequence_folder(&dir)?;
         let camera = match camera.filter(|c| !c.is_none()) {
             Some(c) => camera_from(Some(c), &Config::default())?,
             None => {
@@ -825,12 +936,14 @@ impl TumSequence {
 }
 
 /// `homing run`: a whole sequence, the run files written into `out_dir`; returns summary.json
-/// as a dict. The options are the program's (see `homing run --help`): `drops` like
-/// ["229:259"], `faults` like ["black@229-258"], `fault_rates` like ["foreign:0.05"].
+/// as a dict. The options are the program's (see `homing run --help`) for a TUM folder:
+/// `drops` like ["229:259"], `faults` like ["black@229-258"], `fault_rates` like
+/// ["foreign:0.05"], `controller` one of "ours", "orbslam2", "proslam", "ldso".
 #[pyfunction]
 #[pyo3(signature = (sequence, out_dir, *, config = None, mono = false, drops = vec![],
     faults = vec![], fault_rates = vec![], seed = 0, depth_shift = None, eval = true,
-    load_map = None, save_map = None, threaded = false, strict_input = false))]
+    load_map = None, save_map = None, threaded = false, strict_input = false, controller = None,
+    no_loop_closing = false, mcap_log = false))]
 #[allow(clippy::too_many_arguments)]
 fn run<'py>(
     py: Python<'py>,
@@ -848,7 +961,23 @@ fn run<'py>(
     save_map: Option<PathBuf>,
     threaded: bool,
     strict_input: bool,
+    controller: Option<&str>,
+    no_loop_closing: bool,
+    mcap_log: bool,
 ) -> PyResult<Bound<'py, PyAny>> {
+    use homing::config::ControllerKind;
+    let controller = match controller {
+        None => None,
+        Some("ours") => Some(ControllerKind::Ours),
+        Some("orbslam2") => Some(ControllerKind::Orbslam2),
+        Some("proslam") => Some(ControllerKind::Proslam),
+        Some("ldso") => Some(ControllerKind::Ldso),
+        Some(c) => {
+            return Err(PyValueError::new_err(format!(
+                "controller {c:?}: use \"ours\", \"orbslam2\", \"proslam\" or \"ldso\""
+            )));
+        }
+    };
     fn parse<T: std::str::FromStr>(what: &str, v: &[String]) -> PyResult<Vec<T>>
     where
         T::Err: std::fmt::Display,
@@ -884,6 +1013,9 @@ fn run<'py>(
         load_map,
         save_map,
         strict_input,
+        controller,
+        no_loop_closing,
+        mcap_log,
         ..Default::default()
     };
     let summary = py.detach(|| homing::system::run(&opts)).map_err(py_err)?;

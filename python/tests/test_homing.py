@@ -49,7 +49,10 @@ def track_all(seq_dir, out_dir, mono=False, stop_after=None, units=False):
 
 
 def cli_binary():
-    """The `homing` program `cargo test` built, when it is there."""
+    """The `homing` program: $HOMING_BIN, else the one `cargo test` built (the README's test
+    command builds it just before), when it is there."""
+    if os.environ.get("HOMING_BIN"):
+        return pathlib.Path(os.environ["HOMING_BIN"])
     for profile in ("debug", "release"):
         p = REPO / "target" / profile / "homing"
         if p.is_file():
@@ -112,11 +115,14 @@ def test_bgr_order_is_the_same_frame(desk):
     seq = homing.TumSequence(desk)
     a = homing.Slam(camera=seq.camera)
     b = homing.Slam(camera=seq.camera)
+    posed = 0
     for i in range(15):
         t, rgb, depth = seq[i]
         ra = a.track(t, rgb, depth)
         rb = b.track(t, np.ascontiguousarray(rgb[:, :, ::-1]), depth, bgr=True)
         assert (ra.pose is None and rb.pose is None) or np.array_equal(ra.pose, rb.pose)
+        posed += ra.pose is not None
+    assert posed > 10
     # A non-contiguous view (a slice of a wider array) is read as the image it shows.
     c = homing.Slam(camera=seq.camera)
     d = homing.Slam(camera=seq.camera)
@@ -136,7 +142,7 @@ def test_a_stop_part_way_reaches_final_with_every_output(desk, tmp_path):
     slam, results, (trajectory, s) = track_all(desk, out, stop_after=30)
     last = s["states"][-1]
     assert last["state"] == "Final" and last["trigger"] == "user_stop"
-    assert last["frame"] <= 29
+    assert last["frame"] == 29
     assert len(trajectory) > 0 and len(s["keyframes"]) > 0
     assert max(s["trajectory_frames"]) < 30
     for f in RUN_FILES:
@@ -194,8 +200,12 @@ def test_wrong_input_raises_a_clear_error_not_a_crash(desk, tmp_path):
         with pytest.raises(ValueError, match="does not follow"):
             slam.track(stamp, rgb, depth)
     # Missing files name themselves.
-    with pytest.raises(FileNotFoundError, match="nowhere"):
+    with pytest.raises(FileNotFoundError, match="nowhere: no such folder"):
         homing.TumSequence(tmp_path / "nowhere")
+    with pytest.raises(FileNotFoundError, match="no such folder"):
+        homing.Camera.from_sequence(tmp_path / "rgbd_dataset_freiburg1_gone")
+    with pytest.raises(FileNotFoundError, match="missing-run"):
+        homing.evaluate(run=tmp_path / "missing-run")
     with pytest.raises(FileNotFoundError, match="missing.toml"):
         homing.Slam(config=tmp_path / "missing.toml", camera=cam)
     with pytest.raises(FileNotFoundError, match="missing.atlas"):
@@ -209,6 +219,10 @@ def test_wrong_input_raises_a_clear_error_not_a_crash(desk, tmp_path):
         homing.Slam(config={"orb": {"n_features": 1}}, camera=cam)
     with pytest.raises(ValueError, match="camera.cx"):
         homing.Camera(500, 500, 900, 240, 640, 480)
+    with pytest.raises(ValueError, match="camera.width"):
+        homing.Camera(500, 500, 320, 240, -640, 480)
+    with pytest.raises(ValueError, match="config: values must be"):
+        homing.Slam(config={"orb": {"scale_factor": object()}}, camera=cam)
     with pytest.raises(ValueError, match="no camera"):
         homing.Slam()
     bad = tmp_path / "bad.toml"
@@ -221,6 +235,58 @@ def test_wrong_input_raises_a_clear_error_not_a_crash(desk, tmp_path):
         homing.evaluate(desk / "groundtruth.txt", desk / "groundtruth.txt", align="sim2")
     with pytest.raises(IndexError):
         seq[len(seq)]
+    # An RPE delta past the end is an RPE error, not a crash.
+    est = tmp_path / "est.txt"
+    est.write_text((desk / "groundtruth.txt").read_text())
+    e = homing.evaluate(desk / "groundtruth.txt", est, rpe_unit="frames", rpe_delta=1e20, all_pairs=True)
+    assert e["rpe"] is None and "rpe-delta" in e["rpe_error"]
+
+
+def test_arrays_of_any_layout_are_read_as_the_image_they_show(desk):
+    """Slices, fields of structured arrays and buffers at odd offsets are copied into place by
+    numpy, never reinterpreted: the same frames track to the same poses."""
+    seq = homing.TumSequence(desk)
+    plain = homing.Slam(camera=seq.camera)
+    odd = homing.Slam(camera=seq.camera)
+    scale = seq.camera.depth_scale
+    for i in range(12):
+        t, rgb, depth = seq[i]
+        units = np.round(depth * scale).astype(np.uint16)
+        rp = plain.track(t, rgb, units)
+        # uint16 depth as a field of a structured array: strides of 3 bytes.
+        rec = np.zeros(units.shape, dtype=[("d", "<u2"), ("a", "u1")])
+        rec["d"] = units
+        # RGB from a buffer one byte in; float64 metres as well for every other frame.
+        buf = np.zeros(rgb.size + 1, np.uint8)
+        buf[1:] = rgb.ravel()
+        shifted = np.frombuffer(buf.data, np.uint8, count=rgb.size, offset=1).reshape(rgb.shape)
+        d = rec["d"] if i % 2 else units.astype(np.float64) / scale
+        ro = odd.track(t, shifted, d)
+        assert (rp.pose is None and ro.pose is None) or np.array_equal(rp.pose, ro.pose), i
+    assert len(plain.trajectory()) > 8
+
+
+def test_the_output_of_a_session_is_never_lost(desk, tmp_path):
+    seq = homing.TumSequence(desk)
+    slam = homing.Slam(camera=seq.camera)
+    with pytest.raises(ValueError, match="not finished"):
+        slam.result()
+    for i in range(20):
+        slam.track(*seq[i])
+    # An output folder that cannot be made fails before the session ends...
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    with pytest.raises((ValueError, FileNotFoundError), match="a-file"):
+        slam.finish(blocker / "out")
+    # ...so it still finishes, and what it gave can be had again, with its files.
+    trajectory, summary = slam.finish()
+    again, summary2 = slam.result(tmp_path / "later")
+    assert np.array_equal(trajectory, again) and summary2["poses"] == summary["poses"] == 20
+    assert (tmp_path / "later" / "trajectory.txt").is_file()
+    # A stop before any frame still reaches Final.
+    empty = homing.Slam(camera=seq.camera)
+    trajectory, summary = empty.request_stop()
+    assert trajectory.shape == (0, 8) and summary["final_state"] == "Final"
 
 
 def test_cameras_and_configs_come_as_files_dicts_or_objects(desk, tmp_path):
@@ -231,11 +297,14 @@ def test_cameras_and_configs_come_as_files_dicts_or_objects(desk, tmp_path):
     toml = tmp_path / "camera.toml"
     toml.write_text((desk / "camera.toml").read_text())
     t, rgb, depth = homing.TumSequence(desk)[0]
-    stamps = []
     for camera in (cam, d, toml, str(toml)):
         s = homing.Slam(config={"orb": {"n_features": 800}}, camera=camera)
-        stamps.append(s.track(t, rgb, depth).state)
-    assert len(set(stamps)) == 1
+        assert s.camera.to_dict() == d
+        assert s.track(t, rgb, depth).tracked
+    # Any mapping does, not only a dict.
+    from types import MappingProxyType
+
+    assert homing.Slam(camera=MappingProxyType(d)).camera.to_dict() == d
     cfg = tmp_path / "c.toml"
     cfg.write_text((desk / "camera.toml").read_text() + "\n[orb]\nn_features = 800\n")
     assert homing.Slam(config=cfg).camera.width == 320
@@ -284,6 +353,7 @@ def test_the_gil_is_released_while_a_frame_is_processed(desk):
         th.join()
         sys.setswitchinterval(old)
     assert inside > 0.05
-    # Held, the spinner would get well under a tenth of that time (the switch interval
-    # between calls); released, it runs alongside.
-    assert spun > 0.3 * rate * inside, f"spinner ran {spun / rate:.3f} s of {inside:.3f} s"
+    # Held, the spinner would get about a twentieth of that time (the switch interval
+    # between calls; measured 0.12 with a GIL-holding call of twice the length); released, it
+    # runs alongside (0.94 measured).
+    assert spun > 0.15 * rate * inside, f"spinner ran {spun / rate:.3f} s of {inside:.3f} s"

@@ -190,6 +190,11 @@ pub fn rpe(assoc: &Associated, delta: f64, unit: RpeUnit, all_pairs: bool) -> Re
                     "--rpe-delta {delta} frames must be a whole number"
                 )));
             }
+            if !(delta >= 1.0 && delta < n as f64) {
+                return Err(Error::invalid(format!(
+                    "--rpe-delta {delta} frames must be at least 1 and below the {n} associated poses"
+                )));
+            }
             let d = delta as usize;
             if all_pairs {
                 (0..n).filter(|i| i + d < n).map(|i| (i, i + d)).collect()

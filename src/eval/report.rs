@@ -76,6 +76,9 @@ pub struct EvalReport {
 pub fn evaluate(req: &EvalRequest) -> Result<EvalReport> {
     let mut req = req.clone();
     if let Some(run) = &req.run {
+        if !run.is_dir() {
+            return Err(Error::file(run, "is not a run folder"));
+        }
         if req.est.is_none() {
             req.est = Some(run.join("trajectory.txt"));
         }
