@@ -27,7 +27,7 @@ use crate::control::{StateMachine, StepOutput, TransitionTaken};
 use crate::error::{Error, Result};
 use crate::io::tum::{DepthImage, Frame, StampedPose};
 use crate::map::KfId;
-use crate::outputs::{ClosureRow, DiscardedPose, Flags, StateRow, Timing, Transition};
+use crate::outputs::{ClosureRow, DiscardedPose, Flags, MergeRow, StateRow, Timing, Transition};
 use nalgebra::Isometry3;
 
 /// What one frame gave.
@@ -78,6 +78,8 @@ pub struct SlamOutput {
     pub states: Vec<StateRow>,
     /// closures.csv's rows.
     pub closures: Vec<ClosureRow>,
+    /// Every merge of two maps, confirmed or still provisional (summary.json's `merges`).
+    pub merges: Vec<MergeRow>,
     /// Poses that did not stand, and why.
     pub discarded: Vec<DiscardedPose>,
     /// The state the session ended in (`Final`).
@@ -417,6 +419,7 @@ impl Slam {
             keyframes: keyframe_rows(&self.machine),
             states: self.rec.states.clone(),
             closures: closure_rows(&self.machine),
+            merges: merge_rows(&self.machine),
             discarded: self.rec.discarded.clone(),
             final_state,
         })
@@ -478,6 +481,26 @@ impl Recorded {
             });
         }
     }
+}
+
+/// summary.json's merges: every merge of two maps, confirmed or still provisional.
+pub(crate) fn merge_rows(machine: &StateMachine) -> Vec<MergeRow> {
+    machine
+        .atlas
+        .pools
+        .iter()
+        .filter_map(|p| match p.kind {
+            crate::atlas::PoolKind::Merge { into, from, .. } => Some(MergeRow {
+                pool: p.id,
+                frame: p.frame,
+                into,
+                from,
+                confirmed_frame: p.evidence.as_ref().and_then(|e| e.confirmed.map(|c| c.0)),
+                rolled_back: p.rolled_back,
+            }),
+            _ => None,
+        })
+        .collect()
 }
 
 /// Every keyframe of the atlas by id, with its map.
@@ -571,6 +594,12 @@ fn resolve_poses(machine: &StateMachine, rec: &mut Recorded) -> Posed {
 
 /// closures.csv's rows: a candidate still pending when the run ends expired.
 fn closure_rows(machine: &StateMachine) -> Vec<ClosureRow> {
+    // Merges no later frame confirmed (see `atlas::MergeEvidence`) are reported as provisional.
+    let provisional: Vec<PoolId> = merge_rows(machine)
+        .iter()
+        .filter(|m| !m.rolled_back && m.confirmed_frame.is_none())
+        .map(|m| m.pool)
+        .collect();
     machine
         .closures
         .iter()
@@ -578,6 +607,9 @@ fn closure_rows(machine: &StateMachine) -> Vec<ClosureRow> {
         .map(|mut c| {
             if c.verdict == "pending" {
                 c.verdict = "expired".into();
+            }
+            if c.verdict == "accepted" && c.pool.is_some_and(|p| provisional.contains(&p)) {
+                c.verdict = crate::outputs::ACCEPTED_PROVISIONAL.into();
             }
             c
         })

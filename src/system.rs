@@ -477,6 +477,7 @@ fn summarize(
             .count(),
         pools: machine.atlas.pools.len(),
         pools_rolled_back: machine.atlas.pools.iter().filter(|p| p.rolled_back).count(),
+        merges: crate::slam::merge_rows(machine),
         controller: setup.config.controller.kind.as_str().into(),
         poses_discarded: fin.rec.rec.discarded.len(),
         discarded_poses: std::mem::take(&mut fin.rec.rec.discarded),
@@ -504,7 +505,7 @@ fn summarize(
         closures_accepted: fin
             .closures
             .iter()
-            .filter(|c| c.verdict == "accepted")
+            .filter(|c| c.verdict.starts_with("accepted"))
             .count(),
         closures_rejected: fin
             .closures

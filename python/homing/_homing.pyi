@@ -160,7 +160,8 @@ class Slam:
         """End of data: Final with its refinement. Returns the final trajectory (N x 8 TUM
         rows) and a summary: final_state, frames, poses, maps, trajectory_frames,
         trajectory_maps, keyframes (N x 8), keyframe_maps, states (states.csv's rows),
-        closures (closures.csv's rows), discarded (poses that did not stand, and why). With
+        closures (closures.csv's rows), discarded (poses that did not stand, and why),
+        merges (every merge of two maps, with the frame that confirmed it or None). With
         ``out_dir``, also writes trajectory.txt, keyframes.txt, states.csv and closures.csv
         as ``homing run`` does."""
     def request_stop(

@@ -615,6 +615,7 @@ impl Slam {
         d.set_item("states", state_rows(py, &out.states)?)?;
         d.set_item("closures", closure_rows(py, &out.closures)?)?;
         d.set_item("discarded", to_py(py, &out.discarded)?)?;
+        d.set_item("merges", to_py(py, &out.merges)?)?;
         Ok((tum_rows(py, &out.trajectory), d))
     }
 }

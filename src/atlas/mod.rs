@@ -150,6 +150,55 @@ pub struct PoolRecord {
     /// map): the skeletons' world → the current one.
     #[serde(skip)]
     reframed: Option<SimilarityRecord>,
+    /// A merge's evidence that the place is the one the map merged into holds, not a copy of
+    /// it (not saved: a loaded atlas's merges stand as they are).
+    #[serde(skip)]
+    pub evidence: Option<MergeEvidence>,
+}
+
+/// A merge is provisional until the camera re-observes what only the map merged into had
+/// seen ([`crate::components::global_optimizer::unheld_points`]): a copy of a place shares
+/// the part both maps saw, not the rest.
+#[derive(Debug, Clone, Default)]
+pub struct MergeEvidence {
+    /// Points of the map merged into that no keyframe of the merged map had in view.
+    pub unheld: BTreeSet<PointId>,
+    /// Frames tracked on at least [`MergeEvidence::MIN_POINTS`] of them so far.
+    pub frames: usize,
+    /// The frame and stamp at which the merge was confirmed.
+    pub confirmed: Option<(usize, f64)>,
+}
+
+impl MergeEvidence {
+    /// Tracked inliers among the unheld points for a frame to count as evidence: as many as
+    /// the tracker needs to hold a pose (`tracker.min_inliers`' default), so a few chance
+    /// matches do not count.
+    pub const MIN_POINTS: usize = 20;
+    /// Frames of evidence that confirm a merge: a few, so one frame's chance matches do not.
+    pub const MIN_FRAMES: usize = 3;
+
+    /// Counts one tracked frame's inliers (`matched`); returns true when this frame confirms
+    /// the merge.
+    pub fn observe(
+        &mut self,
+        matched: impl Iterator<Item = PointId>,
+        frame: usize,
+        t: f64,
+    ) -> bool {
+        if self.confirmed.is_some() {
+            return false;
+        }
+        let n = matched.filter(|p| self.unheld.contains(p)).count();
+        if n < Self::MIN_POINTS {
+            return false;
+        }
+        self.frames += 1;
+        if self.frames >= Self::MIN_FRAMES {
+            self.confirmed = Some((frame, t));
+            return true;
+        }
+        false
+    }
 }
 
 impl PoolRecord {
@@ -344,6 +393,7 @@ impl Atlas {
             rolled_back: false,
             before: Vec::new(),
             reframed: None,
+            evidence: None,
         };
         rec.before = rec
             .maps()

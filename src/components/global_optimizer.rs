@@ -415,6 +415,63 @@ fn per_keyframe_placed(
         .collect()
 }
 
+/// The points of map `into` beyond the merged place: not observed by the keyframes of the
+/// place (`place`: the keyframes matched and those covisible with them), and in view of no
+/// keyframe of map `from` placed by `alignment` (from's world → into's, with its scale; in
+/// front, inside the image, within the point's visibility cone). A copy of a place shares the
+/// place itself and what both maps saw, not what lies beyond; the camera re-observing these
+/// points after the merge is what tells the place from its copy (a provisional merge's
+/// confirmation, [`crate::atlas::MergeEvidence`]).
+pub fn unheld_points(
+    geo: &crate::components::preprocess::ImageGeometry,
+    into: &Map,
+    from: &Map,
+    alignment: &Sim3,
+    place: &BTreeSet<KfId>,
+) -> BTreeSet<PointId> {
+    let rotation = nalgebra::UnitQuaternion::from_rotation_matrix(&alignment.rotation);
+    let mut held: BTreeSet<PointId> = into
+        .points
+        .values()
+        .filter(|p| p.observations.keys().any(|k| place.contains(k)))
+        .map(|p| p.id)
+        .collect();
+    for kf in from.keyframes.values() {
+        // The keyframe's camera in into's world: its centre moved by the similarity, its
+        // orientation turned by the similarity's rotation.
+        let centre = alignment.transform_point(&kf.center());
+        let r_cw = kf.pose_cw.rotation * rotation.inverse();
+        let pose_cw = Isometry3::from_parts((-(r_cw * centre)).into(), r_cw);
+        for (p, ..) in in_view(geo, &pose_cw, into.points.values(), MIN_VIEW_COS) {
+            held.insert(p.id);
+        }
+    }
+    into.points
+        .keys()
+        .filter(|id| !held.contains(id))
+        .copied()
+        .collect()
+}
+
+/// The place a closure matched in a map: the keyframes matched and those sharing at least
+/// `min_shared` points with one of them (ORB-SLAM's covisibility threshold is 15).
+pub fn place_of(map: &Map, matched: impl Iterator<Item = KfId>, min_shared: u32) -> BTreeSet<KfId> {
+    let mut place = BTreeSet::new();
+    for k in matched {
+        let Some(kf) = map.keyframes.get(&k) else {
+            continue;
+        };
+        place.insert(k);
+        place.extend(
+            kf.covisibility
+                .iter()
+                .filter(|&(_, &w)| w >= min_shared)
+                .map(|(&c, _)| c),
+        );
+    }
+    place
+}
+
 /// Descriptor distance under which a keypoint re-finds a map point (ORB-SLAM's TH_HIGH
 /// is 100; stricter, because a look-alike surface is what is being told apart).
 const APPEARANCE_MAX_DISTANCE: u32 = 80;
@@ -871,6 +928,60 @@ mod tests {
         // A wall farther away: the points are not where this keyframe sees a surface, so
         // appearance is not judged (the depth check's business).
         assert_eq!(check(3.5, 0x00).1, 0);
+    }
+
+    /// What a merged map never had in view stays unheld: a map of a wall seen from the front,
+    /// merged with a map whose keyframe looks the other way, holds none of it; one looking at
+    /// it holds all of it, also under a similarity (monocular scale). Tracking on enough
+    /// unheld points for a few frames confirms the merge; a few chance matches do not.
+    #[test]
+    fn a_merge_is_confirmed_only_by_what_the_merged_map_never_saw() {
+        use crate::atlas::MergeEvidence;
+        let geo = ImageGeometry::new(Intrinsics::TUM_FREIBURG1, 640, 480, 1.2, 8);
+        let mut into = Map::new(0);
+        add_wall_keyframe(&mut into, &geo, 0, 2.0);
+        let n = into.points.len();
+        assert!(n >= 250);
+        // Looking at the wall: everything held.
+        let mut facing = Map::new(1);
+        add_wall_keyframe(&mut facing, &geo, 1, 2.0);
+        assert!(
+            unheld_points(&geo, &into, &facing, &Sim3::identity(), &BTreeSet::new()).is_empty()
+        );
+        // The same view in a map of half the scale: placed by the similarity, the same.
+        let half = Sim3 {
+            scale: 2.0,
+            ..Sim3::identity()
+        };
+        let mut small = Map::new(2);
+        add_wall_keyframe(&mut small, &geo, 1, 1.0);
+        assert!(unheld_points(&geo, &into, &small, &half, &BTreeSet::new()).is_empty());
+        // Turned around: nothing of the wall was in its view.
+        let behind = Sim3::from_isometry(&Isometry3::rotation(Vector3::y() * std::f64::consts::PI));
+        let unheld = unheld_points(&geo, &into, &facing, &behind, &BTreeSet::new());
+        assert_eq!(unheld.len(), n);
+        // Unless it is the place matched: what its keyframes observed is the place itself.
+        let place = place_of(&into, into.keyframes.keys().copied(), 15);
+        assert!(unheld_points(&geo, &into, &facing, &behind, &place).is_empty());
+        let mut ev = MergeEvidence {
+            unheld,
+            ..Default::default()
+        };
+        let ids: Vec<PointId> = into.points.keys().copied().collect();
+        let few = &ids[..MergeEvidence::MIN_POINTS - 1];
+        for f in 0..10 {
+            assert!(!ev.observe(few.iter().copied(), f, f as f64));
+        }
+        let enough = &ids[..MergeEvidence::MIN_POINTS];
+        let confirmed: Vec<bool> = (10..10 + MergeEvidence::MIN_FRAMES)
+            .map(|f| ev.observe(enough.iter().copied(), f, f as f64))
+            .collect();
+        assert_eq!(confirmed.iter().filter(|&&c| c).count(), 1);
+        assert!(*confirmed.last().unwrap());
+        assert_eq!(
+            ev.confirmed.map(|c| c.0),
+            Some(9 + MergeEvidence::MIN_FRAMES)
+        );
     }
 
     /// Without depth, a predicted cell the tracker did not match is resembled when the camera

@@ -225,6 +225,9 @@ pub(super) fn localized_inlier_floor(mono: bool, min_inliers: usize, peak: usize
 /// 10 s at 30 Hz, recent enough to follow the light and the motion, long enough that one
 /// blurred sweep does not move it.
 pub(super) const REOBSERVED_WINDOW: usize = 300;
+/// Points a keyframe must share with a matched keyframe to be part of the place a merge
+/// matched (ORB-SLAM's covisibility threshold).
+pub(super) const PLACE_MIN_SHARED: u32 = 15;
 /// Below this many mapped frames' shares, the appearance floor is the fixed one.
 pub(super) const MIN_REOBSERVED_SAMPLES: usize = 20;
 

@@ -102,6 +102,8 @@ impl StateMachine {
         self.last_tracked_t = Some(m.t);
         let map = self.atlas.maps.get_mut(&cur).expect("current map exists");
         self.merger.note_tracked(map, track);
+        self.note_merge_evidence(track, m);
+        let map = self.atlas.maps.get_mut(&cur).expect("current map exists");
         self.pending_obs = Some(FrameObservations::new(m, track));
         let kf = track
             .reference_kf
@@ -109,6 +111,25 @@ impl StateMachine {
             .or_else(|| map.keyframes.keys().next_back().copied())
             .expect("a map has a keyframe");
         (map.keyframes[&kf].relative_of(&track.pose_cw), cur, kf)
+    }
+
+    /// Provisional merges: a tracked frame that re-observes enough of what only the map merged
+    /// into had seen counts as evidence for each standing merge still unconfirmed
+    /// ([`crate::atlas::MergeEvidence`]). Only recorded and reported for now.
+    fn note_merge_evidence(&mut self, track: &TrackResult, m: &Measurement) {
+        for rec in self.atlas.pools.iter_mut().filter(|p| !p.rolled_back) {
+            let Some(ev) = rec.evidence.as_mut() else {
+                continue;
+            };
+            if ev.observe(track.matches.iter().flatten().copied(), m.frame, m.t) {
+                tracing::info!(
+                    "frame {}: merge pool {} confirmed: {} frames re-observed what only the map merged into had seen",
+                    m.frame,
+                    rec.id,
+                    ev.frames
+                );
+            }
+        }
     }
 
     /// Core: region Mapping (tracker, map merger, loop closing on the current map) and region

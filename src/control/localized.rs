@@ -94,6 +94,30 @@ impl StateMachine {
         }
         self.atlas.add_edges(pool, edges);
         if into != from {
+            // What only the map merged into saw: the merge is provisional until the camera
+            // re-observes some of it.
+            let unheld = match (self.atlas.maps.get(&into), self.atlas.maps.get(&from)) {
+                (Some(i), Some(f)) => {
+                    let place = global_optimizer::place_of(
+                        i,
+                        acc.members.iter().map(|v| v.matched),
+                        PLACE_MIN_SHARED,
+                    );
+                    global_optimizer::unheld_points(&self.geo, i, f, &acc.alignment, &place)
+                }
+                _ => BTreeSet::new(),
+            };
+            tracing::debug!(
+                "frame {}: merge pool {pool}: {} of map {into}'s points were out of map {from}'s view",
+                m.frame,
+                unheld.len()
+            );
+            if let Some(rec) = self.atlas.pools.get_mut(pool as usize) {
+                rec.evidence = Some(crate::atlas::MergeEvidence {
+                    unheld,
+                    ..Default::default()
+                });
+            }
             if let Err(e) = self.atlas.merge(into, from, &acc.alignment) {
                 tracing::warn!("merge failed: {e}");
                 return;

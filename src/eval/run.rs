@@ -137,7 +137,7 @@ pub fn check_closures(
         c.candidates += 1;
         c.candidates_wrong += w;
         match r.verdict.as_str() {
-            "accepted" => {
+            v if v.starts_with("accepted") => {
                 c.accepted += 1;
                 c.accepted_wrong += w;
                 if wrong {

@@ -74,7 +74,9 @@ pub struct ClosureRow {
     /// world-to-camera poses), when the validator got as far as a pose.
     pub relative: Option<Isometry3<f64>>,
     pub inliers: u32,
-    /// `accepted`, `rolled-back`, `expired` (valid, but no pool formed), or `rejected:<reason>`.
+    /// `accepted`, `accepted:provisional` (a merge no later frame confirmed:
+    /// [`crate::atlas::MergeEvidence`]), `rolled-back`, `expired` (valid, but no pool formed),
+    /// or `rejected:<reason>`.
     pub verdict: String,
     /// The pool that accepted it.
     pub pool: Option<u32>,
@@ -200,6 +202,21 @@ pub struct DiscardedPose {
     pub reason: String,
 }
 
+/// closures.csv's verdict of a merge's rows that no later frame confirmed.
+pub const ACCEPTED_PROVISIONAL: &str = "accepted:provisional";
+
+/// A merge of two maps in `summary.json`.
+#[derive(Debug, Clone, Serialize)]
+pub struct MergeRow {
+    pub pool: u32,
+    pub frame: usize,
+    pub into: u32,
+    pub from: u32,
+    /// The frame that confirmed it; `None`: unconfirmed (provisional) at the end.
+    pub confirmed_frame: Option<usize>,
+    pub rolled_back: bool,
+}
+
 /// `summary.json`.
 #[derive(Debug, Clone, Serialize)]
 pub struct Summary {
@@ -222,6 +239,9 @@ pub struct Summary {
     /// Pools (atlas transactions) accepted, and how many were rolled back.
     pub pools: usize,
     pub pools_rolled_back: usize,
+    /// Every merge of two maps, and whether later frames confirmed it (re-observed what only
+    /// the map merged into had seen).
+    pub merges: Vec<MergeRow>,
     /// The modal controller that ran (`ours`, `orbslam2`, `proslam`, `ldso`).
     pub controller: String,
     /// Frames whose pose was discarded because it was tracked on a map a rollback undid.

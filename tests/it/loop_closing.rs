@@ -151,18 +151,42 @@ fn a_kidnapping_before_the_loop_closes_leaves_no_open_loop() {
 }
 
 /// Small `revisit` with frames dropped at `drops`: one map, no pool rolled back, no wrong
-/// closure, ATE under `max_ate_m`.
+/// closure, ATE under `max_ate_m`. Every merge is reported, confirmed or provisional, in
+/// summary.json and in its closures.csv rows alike.
 fn revisit_ends_in_one_right_map(drops: &[&str], max_ate_m: f64) {
     let perturb = homing::io::perturb::PerturbationSpec {
         drops: drops.iter().map(|d| d.parse().unwrap()).collect(),
         ..Default::default()
     };
-    let s = common::run_small("revisit", perturb).summary;
+    let run = common::run_small("revisit", perturb);
+    let s = &run.summary;
+    assert!(!s.merges.is_empty(), "a drop leaves a map to merge");
+    let rows = homing::outputs::read_closures(&run.out.join("closures.csv")).unwrap();
+    for m in &s.merges {
+        let verdicts: Vec<&str> = rows
+            .iter()
+            .filter(|r| r.pool == Some(m.pool))
+            .map(|r| r.verdict.as_str())
+            .collect();
+        let expected = match (m.rolled_back, m.confirmed_frame) {
+            (true, _) => "rolled-back",
+            (false, Some(f)) => {
+                assert!(f > m.frame, "confirmed at {f}, merged at {}", m.frame);
+                "accepted"
+            }
+            (false, None) => homing::outputs::ACCEPTED_PROVISIONAL,
+        };
+        assert!(
+            !verdicts.is_empty() && verdicts.iter().all(|v| *v == expected),
+            "pool {}: {verdicts:?}, expected {expected}",
+            m.pool
+        );
+    }
     assert_eq!(s.maps, 1);
     assert_eq!(s.pools_rolled_back, 0, "a right merge was rolled back");
     let ev = s.evaluation.as_ref().unwrap();
     assert_eq!(ev["closures"]["accepted_wrong"].as_u64().unwrap(), 0);
-    assert!(ate(&s) < max_ate_m, "ATE {} m", ate(&s));
+    assert!(ate(s) < max_ate_m, "ATE {} m", ate(s));
 }
 
 /// The benchmark's three 5 s drops in small `revisit`. After the first merge, Localized is left
