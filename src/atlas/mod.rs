@@ -161,7 +161,8 @@ pub struct PoolRecord {
 /// the part both maps saw, not the rest.
 #[derive(Debug, Clone, Default)]
 pub struct MergeEvidence {
-    /// Points of the map merged into that no keyframe of the merged map had in view.
+    /// Points of the map merged into beyond the merged place (see `unheld_points`); emptied
+    /// once the merge is confirmed.
     pub unheld: BTreeSet<PointId>,
     /// Frames tracked on at least [`MergeEvidence::MIN_POINTS`] of them so far.
     pub frames: usize,
@@ -195,6 +196,7 @@ impl MergeEvidence {
         self.frames += 1;
         if self.frames >= Self::MIN_FRAMES {
             self.confirmed = Some((frame, t));
+            self.unheld = BTreeSet::new();
             return true;
         }
         false

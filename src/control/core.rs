@@ -100,10 +100,9 @@ impl StateMachine {
     pub(super) fn tracked(&mut self, cur: MapId, track: &TrackResult, m: &Measurement) -> Pose {
         self.flags.able_to_track = true;
         self.last_tracked_t = Some(m.t);
-        let map = self.atlas.maps.get_mut(&cur).expect("current map exists");
-        self.merger.note_tracked(map, track);
         self.note_merge_evidence(track, m);
         let map = self.atlas.maps.get_mut(&cur).expect("current map exists");
+        self.merger.note_tracked(map, track);
         self.pending_obs = Some(FrameObservations::new(m, track));
         let kf = track
             .reference_kf

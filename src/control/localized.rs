@@ -108,7 +108,7 @@ impl StateMachine {
                 _ => BTreeSet::new(),
             };
             tracing::debug!(
-                "frame {}: merge pool {pool}: {} of map {into}'s points were out of map {from}'s view",
+                "frame {}: merge pool {pool}: {} of map {into}'s points lie beyond the merged place",
                 m.frame,
                 unheld.len()
             );
