@@ -49,6 +49,16 @@ impl Sim3 {
         }
     }
 
+    /// A camera's world-to-camera pose once its world is moved by this similarity: its centre
+    /// is carried by the similarity and its orientation turned by the rotation,
+    /// `T'_cw = [R_cw Rᵀ | −R'_cw c']` (the camera itself is not scaled).
+    pub fn transform_pose_cw(&self, pose_cw: &Isometry3<f64>) -> Isometry3<f64> {
+        let rot = UnitQuaternion::from_rotation_matrix(&self.rotation);
+        let c = self.transform_point(&pose_cw.inverse().translation.vector);
+        let r_cw = pose_cw.rotation * rot.inverse();
+        Isometry3::from_parts(Translation3::from(-(r_cw * c)), r_cw)
+    }
+
     /// The rigid part (the scale is dropped).
     pub fn to_isometry(&self) -> Isometry3<f64> {
         Isometry3::from_parts(

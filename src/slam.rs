@@ -495,7 +495,7 @@ pub(crate) fn merge_rows(machine: &StateMachine) -> Vec<MergeRow> {
                 frame: p.frame,
                 into,
                 from,
-                confirmed_frame: p.evidence.as_ref().and_then(|e| e.confirmed.map(|c| c.0)),
+                confirmed_frame: p.evidence.as_ref().and_then(|e| e.confirmed),
                 rolled_back: p.rolled_back,
             }),
             _ => None,

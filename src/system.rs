@@ -505,7 +505,7 @@ fn summarize(
         closures_accepted: fin
             .closures
             .iter()
-            .filter(|c| c.verdict.starts_with("accepted"))
+            .filter(|c| crate::outputs::is_accepted(&c.verdict))
             .count(),
         closures_rejected: fin
             .closures

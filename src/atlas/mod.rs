@@ -14,7 +14,7 @@
 use crate::error::{Error, Result};
 use crate::geometry::Sim3;
 use crate::map::{KfId, Map, PointId};
-use nalgebra::{Isometry3, Matrix6, Translation3, UnitQuaternion};
+use nalgebra::{Isometry3, Matrix6, UnitQuaternion};
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
@@ -166,8 +166,8 @@ pub struct MergeEvidence {
     pub unheld: BTreeSet<PointId>,
     /// Frames tracked on at least [`MergeEvidence::MIN_POINTS`] of them so far.
     pub frames: usize,
-    /// The frame and stamp at which the merge was confirmed.
-    pub confirmed: Option<(usize, f64)>,
+    /// The frame at which the merge was confirmed.
+    pub confirmed: Option<usize>,
 }
 
 impl MergeEvidence {
@@ -180,12 +180,7 @@ impl MergeEvidence {
 
     /// Counts one tracked frame's inliers (`matched`); returns true when this frame confirms
     /// the merge.
-    pub fn observe(
-        &mut self,
-        matched: impl Iterator<Item = PointId>,
-        frame: usize,
-        t: f64,
-    ) -> bool {
+    pub fn observe(&mut self, matched: impl Iterator<Item = PointId>, frame: usize) -> bool {
         if self.confirmed.is_some() {
             return false;
         }
@@ -195,7 +190,7 @@ impl MergeEvidence {
         }
         self.frames += 1;
         if self.frames >= Self::MIN_FRAMES {
-            self.confirmed = Some((frame, t));
+            self.confirmed = Some(frame);
             self.unheld = BTreeSet::new();
             return true;
         }
@@ -639,10 +634,7 @@ impl Atlas {
 pub(crate) fn transformed(mut map: Map, s: &Sim3) -> Map {
     let rot = UnitQuaternion::from_rotation_matrix(&s.rotation);
     for kf in map.keyframes.values_mut() {
-        // Camera centre and orientation move with the world; T'_cw = [R_cw Rᵀ | −R'_cw c'].
-        let c = s.transform_point(&kf.center());
-        let r_cw = kf.pose_cw.rotation * rot.inverse();
-        kf.pose_cw = Isometry3::from_parts(Translation3::from(-(r_cw * c)), r_cw);
+        kf.pose_cw = s.transform_pose_cw(&kf.pose_cw);
         // Camera-frame velocity: only its translational part scales.
         for k in 3..6 {
             kf.twist[k] *= s.scale;
@@ -1094,9 +1086,7 @@ mod tests {
     }
 
     fn move_keyframe_for_test(k: &mut crate::map::Keyframe, c: &Sim3) {
-        let centre = c.transform_point(&k.center());
-        let r_cw = k.pose_cw.rotation * UnitQuaternion::from_rotation_matrix(&c.rotation).inverse();
-        k.pose_cw = Isometry3::from_parts(Translation3::from(-(r_cw * centre)), r_cw);
+        k.pose_cw = c.transform_pose_cw(&k.pose_cw);
     }
 
     #[test]

@@ -23,7 +23,7 @@ use super::{Atlas, MapId, PoolId, PoolKind};
 use crate::error::{Error, Result};
 use crate::geometry::Sim3;
 use crate::map::{Keyframe, KfId, Map, MapPoint, PointId};
-use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Vector3};
 use std::collections::{BTreeMap, BTreeSet};
 
 /// Which side of a revoked pool a keyframe or point is on.
@@ -166,13 +166,7 @@ fn moved_with(c: &Sim3, a: &Sim3, centre: &Vector3<f64>, jump: (f64, f64)) -> bo
 
 /// `k`'s pose and units in another world (`r`: old world → new), as `Atlas::merge` moves them.
 fn reframed(k: &Keyframe, r: &Sim3) -> (Isometry3<f64>, f64) {
-    let rot = UnitQuaternion::from_rotation_matrix(&r.rotation);
-    let c = r.transform_point(&k.center());
-    let r_cw = k.pose_cw.rotation * rot.inverse();
-    (
-        Isometry3::from_parts(Translation3::from(-(r_cw * c)), r_cw),
-        k.units * r.scale,
-    )
+    (r.transform_pose_cw(&k.pose_cw), k.units * r.scale)
 }
 
 /// The world correction (current world → restored world) that takes a keyframe at `now`

@@ -1324,7 +1324,7 @@ fn read_run(dir: &Path, line: &[String], row: &mut Row) -> Result<()> {
         .collect();
     let merges: Vec<usize> = closures
         .iter()
-        .filter(|c| c.kind != "loop" && c.verdict.starts_with("accepted"))
+        .filter(|c| c.kind != "loop" && crate::outputs::is_accepted(&c.verdict))
         .map(|c| c.frame)
         .collect();
     (row.merge_frames, row.events) = merge_latency(

@@ -429,7 +429,6 @@ pub fn unheld_points(
     alignment: &Sim3,
     place: &BTreeSet<KfId>,
 ) -> BTreeSet<PointId> {
-    let rotation = nalgebra::UnitQuaternion::from_rotation_matrix(&alignment.rotation);
     let mut held: BTreeSet<PointId> = into
         .points
         .values()
@@ -437,11 +436,8 @@ pub fn unheld_points(
         .map(|p| p.id)
         .collect();
     for kf in from.keyframes.values() {
-        // The keyframe's camera in into's world: its centre moved by the similarity, its
-        // orientation turned by the similarity's rotation.
-        let centre = alignment.transform_point(&kf.center());
-        let r_cw = kf.pose_cw.rotation * rotation.inverse();
-        let pose_cw = Isometry3::from_parts((-(r_cw * centre)).into(), r_cw);
+        // The keyframe's camera in into's world.
+        let pose_cw = alignment.transform_pose_cw(&kf.pose_cw);
         for (p, ..) in in_view(geo, &pose_cw, into.points.values(), MIN_VIEW_COS) {
             held.insert(p.id);
         }
@@ -970,18 +966,15 @@ mod tests {
         let ids: Vec<PointId> = into.points.keys().copied().collect();
         let few = &ids[..MergeEvidence::MIN_POINTS - 1];
         for f in 0..10 {
-            assert!(!ev.observe(few.iter().copied(), f, f as f64));
+            assert!(!ev.observe(few.iter().copied(), f));
         }
         let enough = &ids[..MergeEvidence::MIN_POINTS];
         let confirmed: Vec<bool> = (10..10 + MergeEvidence::MIN_FRAMES)
-            .map(|f| ev.observe(enough.iter().copied(), f, f as f64))
+            .map(|f| ev.observe(enough.iter().copied(), f))
             .collect();
         assert_eq!(confirmed.iter().filter(|&&c| c).count(), 1);
         assert!(*confirmed.last().unwrap());
-        assert_eq!(
-            ev.confirmed.map(|c| c.0),
-            Some(9 + MergeEvidence::MIN_FRAMES)
-        );
+        assert_eq!(ev.confirmed, Some(9 + MergeEvidence::MIN_FRAMES));
     }
 
     /// Without depth, a predicted cell the tracker did not match is resembled when the camera

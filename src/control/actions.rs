@@ -48,9 +48,10 @@ pub(super) const IDLE_POOL_TURN_DEG_S: f64 = 90.0;
 pub(super) const LOCAL_LOOP_M: f64 = 1.0;
 pub(super) const LOCAL_LOOP_DEG: f64 = 15.0;
 
-/// Shared map points that make a keyframe part of a look-alike place (the covisibility
-/// graph's edge threshold).
-pub(super) const LOOKALIKE_COVISIBILITY: u32 = 15;
+/// Shared map points that make a keyframe part of a place: of a look-alike place a recovery
+/// found, or of the place a merge matched (the covisibility graph's edge threshold,
+/// ORB-SLAM's 15).
+pub(super) const PLACE_COVISIBILITY: u32 = 15;
 /// With depth: a keyframe looks at a look-alike place when this share of its points lie in
 /// the voxels (of this size, m) holding the look-alike keyframes' points.
 pub(super) const LOOKALIKE_VOXEL_M: f64 = 0.25;
@@ -225,9 +226,6 @@ pub(super) fn localized_inlier_floor(mono: bool, min_inliers: usize, peak: usize
 /// 10 s at 30 Hz, recent enough to follow the light and the motion, long enough that one
 /// blurred sweep does not move it.
 pub(super) const REOBSERVED_WINDOW: usize = 300;
-/// Points a keyframe must share with a matched keyframe to be part of the place a merge
-/// matched (ORB-SLAM's covisibility threshold).
-pub(super) const PLACE_MIN_SHARED: u32 = 15;
 /// Below this many mapped frames' shares, the appearance floor is the fixed one.
 pub(super) const MIN_REOBSERVED_SAMPLES: usize = 20;
 

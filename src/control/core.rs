@@ -120,7 +120,7 @@ impl StateMachine {
             let Some(ev) = rec.evidence.as_mut() else {
                 continue;
             };
-            if ev.observe(track.matches.iter().flatten().copied(), m.frame, m.t) {
+            if ev.observe(track.matches.iter().flatten().copied(), m.frame) {
                 tracing::info!(
                     "frame {}: merge pool {} confirmed: {} frames re-observed what only the map merged into had seen",
                     m.frame,

@@ -183,7 +183,7 @@ impl StateMachine {
             lookalikes.contains(&kf)
                 || k.covisibility
                     .iter()
-                    .any(|(o, w)| *w >= LOOKALIKE_COVISIBILITY && lookalikes.contains(o))
+                    .any(|(o, w)| *w >= PLACE_COVISIBILITY && lookalikes.contains(o))
                 || shared as f64 / own as f64 >= LOOKALIKE_SHARED
         };
         // Only what claims another map is at that place: a merge (or a relocalization of a

@@ -101,7 +101,7 @@ impl StateMachine {
                     let place = global_optimizer::place_of(
                         i,
                         acc.members.iter().map(|v| v.matched),
-                        PLACE_MIN_SHARED,
+                        PLACE_COVISIBILITY,
                     );
                     global_optimizer::unheld_points(&self.geo, i, f, &acc.alignment, &place)
                 }

@@ -137,7 +137,7 @@ pub fn check_closures(
         c.candidates += 1;
         c.candidates_wrong += w;
         match r.verdict.as_str() {
-            v if v.starts_with("accepted") => {
+            v if crate::outputs::is_accepted(v) => {
                 c.accepted += 1;
                 c.accepted_wrong += w;
                 if wrong {

@@ -205,6 +205,12 @@ pub struct DiscardedPose {
 /// closures.csv's verdict of a merge's rows that no later frame confirmed.
 pub const ACCEPTED_PROVISIONAL: &str = "accepted:provisional";
 
+/// Whether a closures.csv verdict counts as accepted: confirmed, or a merge still provisional
+/// (decision 0023).
+pub fn is_accepted(verdict: &str) -> bool {
+    verdict == "accepted" || verdict == ACCEPTED_PROVISIONAL
+}
+
 /// A merge of two maps in `summary.json`.
 #[derive(Debug, Clone, Serialize)]
 pub struct MergeRow {

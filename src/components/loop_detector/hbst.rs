@@ -278,9 +278,9 @@ impl Hbst {
 
     /// The leaves a query scans: its own leaf (`own_leaf`, its descent) first, then every leaf
     /// reached by taking the other branch at up to `search_flips` of the splits on the way
-    /// (each leaf once: a stored
-    /// descriptor sits in exactly one leaf, so no match is found twice). With `f` flips and
-    /// depth `d` that is Σ_{k≤f} C(d, k) leaves: 1, ~13, ~80 at the real trees' depth of 12.
+    /// (each leaf once: a stored descriptor sits in exactly one leaf, so no match is found
+    /// twice). With `f` flips and depth `d` that is Σ_{k≤f} C(d, k) leaves: 1, ~13, ~80 at the
+    /// real trees' depth of 12.
     fn probe_leaves(&self, w: &Words, own_leaf: u32, out: &mut Vec<u32>) {
         out.clear();
         out.push(own_leaf);
