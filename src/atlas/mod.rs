@@ -897,7 +897,9 @@ mod tests {
         );
         assert!(atlas.maps[&b].points.contains_key(&own));
         // The camera's key point that saw a's point sees a copy of it on its side.
-        let copy = r.copies[&pa[0]];
+        let copy = r
+            .copy_in(pa[0], &atlas.maps[&b])
+            .expect("a copy on b's side");
         assert_eq!(atlas.maps[&b].keyframes[&later].points[0], Some(copy));
         assert!(atlas.maps[&a].points.contains_key(&pa[0]));
         assert!(
@@ -1002,6 +1004,8 @@ mod tests {
         let before = map.add_keyframe(&measurement(6), Isometry3::identity());
         let after = map.add_keyframe(&measurement(9), Isometry3::identity());
         map.observe(after, 2, pa);
+        // The near side saw the same far point after the merge, before the camera was lost.
+        map.observe(before, 2, pa);
         let r = atlas.revoke(p0, ORB, &[3, 8]).unwrap();
         links_hold(&atlas);
         assert_eq!(atlas.maps.len(), 3);
@@ -1011,9 +1015,18 @@ mod tests {
         assert!(atlas.maps[&b].keyframes.contains_key(&before));
         assert!(atlas.maps[&d].keyframes.contains_key(&after));
         assert_eq!(r.camera_map(), d);
+        // Each side sees a copy of its own, in its own map.
+        let (near_copy, detached_copy) = (
+            r.copy_in(pa, &atlas.maps[&b])
+                .expect("a copy on the near side"),
+            r.copy_in(pa, &atlas.maps[&d])
+                .expect("a copy on the detached side"),
+        );
+        assert_ne!(near_copy, detached_copy);
+        assert_eq!(atlas.maps[&b].keyframes[&before].points[2], Some(near_copy));
         assert_eq!(
             atlas.maps[&d].keyframes[&after].points[2],
-            Some(r.copies[&pa])
+            Some(detached_copy)
         );
         // Frames tracked against the far side follow the camera's side of their time.
         let rel = Isometry3::identity();

@@ -69,8 +69,9 @@ pub struct Revocation {
     pub detached_from: Option<usize>,
     pub detached_map: Option<MapId>,
     pub detached_anchors: Vec<Anchor>,
-    /// Point → the copy of it made on the other side.
-    pub copies: BTreeMap<PointId, PointId>,
+    /// Point → the copies of it made on the other sides, one per side whose key points saw
+    /// it across the seam (see [`Revocation::copy_in`]).
+    pub copies: BTreeMap<PointId, Vec<PointId>>,
     /// A loop's far-side points (the map is not split: they stay in the camera's map, but
     /// the camera did not see them where the loop said).
     pub far_points: BTreeSet<PointId>,
@@ -137,6 +138,15 @@ impl Revocation {
 }
 
 impl Revocation {
+    /// The copy of point `p` that map `map` holds, if the revocation made one there.
+    pub fn copy_in(&self, p: PointId, map: &Map) -> Option<PointId> {
+        self.copies
+            .get(&p)?
+            .iter()
+            .copied()
+            .find(|c| map.points.contains_key(c))
+    }
+
     /// The side the camera was on at frame `frame` (at or after the pool's).
     pub fn camera_side(&self, frame: usize) -> Side {
         self.camera
@@ -445,7 +455,12 @@ impl Atlas {
             .collect();
         let mut next_point = self.high_water.1;
         let mut new_points: BTreeMap<PointId, NewPoint> = BTreeMap::new();
-        let mut copies: BTreeMap<PointId, PointId> = BTreeMap::new();
+        // One copy per side that saw the point across the seam: the sides become maps of
+        // their own, and a copy shared by two would leave one side's key points referring to
+        // a point of another map (fr1_desk, a right merge revoked after the camera was found
+        // again: the near side's and the detached side's key points shared one copy, and the
+        // detached map's next local BA found a keyframe point missing).
+        let mut copies: BTreeMap<(PointId, Side), PointId> = BTreeMap::new();
         let mut cuts: Vec<(KfId, usize, PointId, PointId)> = Vec::new();
         let mut points_restored = 0;
         for (kid, k) in &map.keyframes {
@@ -489,7 +504,7 @@ impl Atlas {
                         }
                         x
                     }
-                    None => *copies.entry(p).or_insert_with(|| {
+                    None => *copies.entry((p, ks)).or_insert_with(|| {
                         let id = next_point;
                         next_point += 1;
                         new_points.insert(
@@ -709,7 +724,12 @@ impl Atlas {
             detached_from: detached_map.and(detached_from),
             detached_map,
             detached_anchors,
-            copies,
+            copies: copies
+                .into_iter()
+                .fold(BTreeMap::new(), |mut out, ((p, _), c)| {
+                    out.entry(p).or_insert_with(Vec::new).push(c);
+                    out
+                }),
             far_points,
             links_cut,
             points_restored,

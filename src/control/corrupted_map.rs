@@ -383,7 +383,7 @@ impl StateMachine {
                         let pt = if map.points.contains_key(&pt) && !r.far_points.contains(&pt) {
                             pt
                         } else {
-                            *r.copies.get(&pt)?
+                            r.copy_in(pt, map)?
                         };
                         (map.points.contains_key(&pt) && !r.far_points.contains(&pt)).then_some(pt)
                     },

@@ -109,12 +109,12 @@ impl FrameStore {
                 if map.points.contains_key(&o.point) && !(near && r.far_points.contains(&o.point)) {
                     return true;
                 }
-                match r.copies.get(&o.point) {
-                    Some(c) if map.points.contains_key(c) => {
-                        o.point = *c;
+                match r.copy_in(o.point, map) {
+                    Some(c) => {
+                        o.point = c;
                         true
                     }
-                    _ => false,
+                    None => false,
                 }
             });
         }
