@@ -501,6 +501,7 @@ impl StateMachine {
                 candidates.push(c);
             }
         }
+        let proposed: BTreeSet<KfId> = candidates.iter().map(|c| c.image as KfId).collect();
         for c in candidates {
             let Some(match_map) = self.atlas.map_of_keyframe(c.image as KfId) else {
                 continue;
@@ -561,9 +562,67 @@ impl StateMachine {
                 "relocalization"
             };
             if self.offer(verdict, m, kind, window) {
-                break;
+                return;
             }
         }
+        self.recheck_open_hypothesis(m, cur, track, &proposed);
+    }
+
+    /// The relocalization pool's open hypothesis (its newest pending candidate), checked at
+    /// frame `m` by projection (`loop_validator::validate_from_prior`) unless the detector or
+    /// the lost place proposed its keyframe at this frame (`proposed`): a pool needs
+    /// `pool_size` frames that validate the same alignment, and a hand-held camera's next
+    /// frames, a few centimetres and degrees on, often get too few of the detector's tight
+    /// votes to be proposed again (fr1_desk, two 1–3 s drops: a right candidate with 91–182
+    /// inliers expired alone). Its verdict goes to the same pool, logged as `re-check`; the
+    /// pool and the merge checks judge it like any other.
+    /// Only a hypothesis at a place where the camera lost track before (`lost_places`) is
+    /// re-checked: that is where a camera that lost track most often is again, and elsewhere a
+    /// look-alike passes the re-check as well as the place would (small `aliasing`, three 1 s
+    /// drops: room B's map, two frames proposed into room A 5 m from where its map was lost,
+    /// was merged there by a re-check; with the restriction the maps stay apart). What the
+    /// restriction costs on real data is in docs/decisions/0026.
+    fn recheck_open_hypothesis(
+        &mut self,
+        m: &Measurement,
+        cur: MapId,
+        track: &TrackResult,
+        proposed: &BTreeSet<KfId>,
+    ) {
+        let window = self.cfg.loop_closing.pool_window_frames as usize;
+        let Some((kf, alignment)) = self.reloc_pool.open_hypothesis(cur, m.frame, window) else {
+            return;
+        };
+        let Some(match_map) = self.atlas.map_of_keyframe(kf) else {
+            return;
+        };
+        if match_map == cur
+            || proposed.contains(&kf)
+            || self.aliased.contains(&kf)
+            || !self.lost_places.contains(&kf)
+        {
+            return;
+        }
+        let prior = alignment.transform_pose_cw(&track.pose_cw);
+        let q = Query {
+            m,
+            map: cur,
+            pose: track.pose_cw,
+            kf: None,
+            reference_kf: track.reference_kf.or(self.tracker.reference_kf),
+            own: self
+                .mono
+                .then(|| (&self.atlas.maps[&cur], track.matches.as_slice())),
+        };
+        let verdict = loop_validator::validate_from_prior(
+            &self.cfg.loop_closing,
+            &self.geo,
+            &q,
+            &self.atlas.maps[&match_map],
+            kf,
+            &prior,
+        );
+        self.offer(verdict, m, "re-check", window);
     }
 
     /// For `LOST_PLACE_WINDOW_S` after a loss, in the map started after it, the lost place's

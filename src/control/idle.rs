@@ -60,6 +60,9 @@ impl StateMachine {
             let lost = self.lost_keyframes();
             let pose = self.start_new_map(m, timing)?;
             self.resume = resume;
+            if let Some((keyframes, _)) = &lost {
+                self.lost_places.extend(keyframes.iter().copied());
+            }
             self.lost_place = lost.map(|(keyframes, lost_t)| super::LostPlace {
                 new_map: pose.1,
                 keyframes,

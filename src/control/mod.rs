@@ -32,7 +32,7 @@ use crate::optim::Intrinsics;
 use crate::outputs::{ClosureRow, Flags, Timing, Transition};
 use nalgebra::Isometry3;
 pub use spec::{Activity, Guard, MachineSpec, State};
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 
 /// What one step produced.
 #[derive(Debug, Clone)]
@@ -158,6 +158,10 @@ pub struct StateMachine {
     /// map started next validates them as candidates while the camera may still be near them,
     /// whatever the loop detector's votes (a short gap rarely moves the camera far).
     lost_place: Option<LostPlace>,
+    /// The keyframes of every lost place so far: where the camera lost track is where it
+    /// most often comes back to, and a pending hypothesis there is re-checked by projection
+    /// (see `recheck_open_hypothesis`).
+    lost_places: BTreeSet<KfId>,
     /// A frame Idle re-tracked in the current map, for the entered state's Mapping region
     /// (see `map_retracked`); and the frame's pose when that made it a keyframe.
     retracked: Option<crate::components::tracker::TrackResult>,
@@ -240,6 +244,7 @@ impl StateMachine {
             retracked: None,
             resume: None,
             lost_place: None,
+            lost_places: BTreeSet::new(),
             entry_pose: None,
             pending_obs: None,
             keyframe_made: false,
