@@ -252,11 +252,9 @@ pub fn validate_from_prior(
     prior: &Isometry3<f64>,
 ) -> Verdict {
     let reject = rejection_of(matched);
-    let Some(kf) = map.keyframes.get(&matched) else {
+    let Some(local) = local_window(map, matched) else {
         return reject(Rejection::TooFewMatches, 0, None);
     };
-    let mut local: Vec<KfId> = vec![matched];
-    local.extend(kf.best_covisible(10));
     let mut matches: Vec<Option<PointId>> = vec![None; q.m.len()];
     let found = search_local_map(
         geo,
@@ -271,6 +269,17 @@ pub fn validate_from_prior(
         return reject(Rejection::TooFewMatches, found, None);
     }
     refine_and_judge(cfg, geo, q, map, matched, prior, matches)
+}
+
+/// Keyframe `matched` of `map` and its 10 best covisible ones: the local map a validation is
+/// refined against (`None` if the keyframe is gone).
+fn local_window(map: &Map, matched: KfId) -> Option<Vec<KfId>> {
+    let kf = map.keyframes.get(&matched)?;
+    Some(
+        std::iter::once(matched)
+            .chain(kf.best_covisible(10))
+            .collect(),
+    )
 }
 
 /// Search radius (pixels at the finest level) of [`validate_from_prior`]'s first projection:
@@ -290,12 +299,10 @@ fn refine_and_judge(
     mut matches: Vec<Option<PointId>>,
 ) -> Verdict {
     let reject = rejection_of(matched);
-    let Some(kf) = map.keyframes.get(&matched) else {
+    // Refinement against the matched keyframe's local map.
+    let Some(local) = local_window(map, matched) else {
         return reject(Rejection::TooFewMatches, 0, None);
     };
-    // Refinement against the matched keyframe's local map.
-    let mut local: Vec<KfId> = vec![matched];
-    local.extend(kf.best_covisible(10));
     let (mut pose, mut inliers) = refine(geo, q.m, map, initial, &matches);
     for radius in [8.0, 4.0] {
         let mut m2: Vec<Option<PointId>> = vec![None; q.m.len()];

@@ -356,16 +356,7 @@ impl StateMachine {
         let aliased = &self.aliased;
         let det = self.detect_frame(m, |k| !old.contains(&k) || aliased.contains(&k));
         for c in det.candidates.iter().take(CANDIDATES_PER_QUERY) {
-            let q = Query {
-                m,
-                map: cur,
-                pose: track.pose_cw,
-                kf: None,
-                reference_kf: track.reference_kf.or(self.tracker.reference_kf),
-                own: self
-                    .mono
-                    .then(|| (&self.atlas.maps[&cur], track.matches.as_slice())),
-            };
+            let q = self.frame_query(m, cur, track);
             let verdict = loop_validator::validate(
                 &self.cfg.loop_closing,
                 &self.geo,
@@ -377,6 +368,26 @@ impl StateMachine {
             if self.offer(verdict, m, "loop", window) {
                 break;
             }
+        }
+    }
+
+    /// Tracked frame `m` of map `cur` as a validator's query: its pose and reference keyframe
+    /// in its map, and without depth its tracked points (for the similarity).
+    fn frame_query<'a>(
+        &'a self,
+        m: &'a Measurement,
+        cur: MapId,
+        track: &'a TrackResult,
+    ) -> Query<'a> {
+        Query {
+            m,
+            map: cur,
+            pose: track.pose_cw,
+            kf: None,
+            reference_kf: track.reference_kf.or(self.tracker.reference_kf),
+            own: self
+                .mono
+                .then(|| (&self.atlas.maps[&cur], track.matches.as_slice())),
         }
     }
 
@@ -506,16 +517,7 @@ impl StateMachine {
             let Some(match_map) = self.atlas.map_of_keyframe(c.image as KfId) else {
                 continue;
             };
-            let q = Query {
-                m,
-                map: cur,
-                pose: track.pose_cw,
-                kf: None,
-                reference_kf: track.reference_kf.or(self.tracker.reference_kf),
-                own: self
-                    .mono
-                    .then(|| (&self.atlas.maps[&cur], track.matches.as_slice())),
-            };
+            let q = self.frame_query(m, cur, track);
             let mut verdict = loop_validator::validate(
                 &self.cfg.loop_closing,
                 &self.geo,
@@ -604,16 +606,7 @@ impl StateMachine {
             return;
         }
         let prior = alignment.transform_pose_cw(&track.pose_cw);
-        let q = Query {
-            m,
-            map: cur,
-            pose: track.pose_cw,
-            kf: None,
-            reference_kf: track.reference_kf.or(self.tracker.reference_kf),
-            own: self
-                .mono
-                .then(|| (&self.atlas.maps[&cur], track.matches.as_slice())),
-        };
+        let q = self.frame_query(m, cur, track);
         let verdict = loop_validator::validate_from_prior(
             &self.cfg.loop_closing,
             &self.geo,
