@@ -150,10 +150,28 @@ fn a_kidnapping_before_the_loop_closes_leaves_no_open_loop() {
     revisit_ends_in_one_right_map(&["8.733s:11.733s"], 0.05);
 }
 
+/// Two 2 s drops in small `revisit` (12.6 and 26.3 s): after the second, the new map's
+/// candidate into the place where the camera was lost is pending, and the next frames are
+/// checked against it by projection (decision 0026); one of them completes the merge pool, and
+/// the maps end as one, right.
+#[test]
+fn a_pending_merge_at_the_lost_place_is_re_checked_by_projection() {
+    let rows = revisit_ends_in_one_right_map(&["12.645s:14.645s", "26.289s:28.289s"], 0.03);
+    assert!(
+        rows.iter().any(|r| r.kind == "re-check"
+            && r.pool.is_some()
+            && homing::outputs::is_accepted(&r.verdict)),
+        "no re-checked frame in a merge pool: {rows:?}"
+    );
+}
+
 /// Small `revisit` with frames dropped at `drops`: one map, no pool rolled back, no wrong
 /// closure, ATE under `max_ate_m`. Every merge is reported, confirmed or provisional, in
-/// summary.json and in its closures.csv rows alike.
-fn revisit_ends_in_one_right_map(drops: &[&str], max_ate_m: f64) {
+/// summary.json and in its closures.csv rows alike. Returns closures.csv's rows.
+fn revisit_ends_in_one_right_map(
+    drops: &[&str],
+    max_ate_m: f64,
+) -> Vec<homing::outputs::ClosureRow> {
     let perturb = homing::io::perturb::PerturbationSpec {
         drops: drops.iter().map(|d| d.parse().unwrap()).collect(),
         ..Default::default()
@@ -187,6 +205,7 @@ fn revisit_ends_in_one_right_map(drops: &[&str], max_ate_m: f64) {
     let ev = s.evaluation.as_ref().unwrap();
     assert_eq!(ev["closures"]["accepted_wrong"].as_u64().unwrap(), 0);
     assert!(ate(s) < max_ate_m, "ATE {} m", ate(s));
+    rows
 }
 
 /// The benchmark's three 5 s drops in small `revisit`. After the first merge, Localized is left
