@@ -45,7 +45,7 @@ pub enum Command {
 
 #[derive(Debug, Args)]
 pub struct SynthArgs {
-    /// desk, loop, aliasing, revisit or case-study.
+    /// desk, loop, aliasing, revisit, case-study or turn-in-place.
     #[arg(long)]
     pub scenario: String,
     #[arg(long)]

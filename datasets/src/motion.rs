@@ -215,8 +215,19 @@ impl RobotScript {
     /// Turns in place to heading `yaw_deg` (the shorter way).
     pub fn turn_to(&mut self, yaw_deg: f64) -> &mut Self {
         let l = self.last();
-        let mut d = yaw_deg.to_radians() - l.yaw;
-        d = (d + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU) - std::f64::consts::PI;
+        let d = yaw_deg.to_radians() - l.yaw;
+        let d = (d + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU) - std::f64::consts::PI;
+        self.turn_rad(d)
+    }
+
+    /// Turns in place by `deg` (positive: counter-clockwise seen from above), the whole way:
+    /// 360 is a full turn. The rate eases in and out and peaks at `turn_rate`.
+    pub fn turn_by(&mut self, deg: f64) -> &mut Self {
+        self.turn_rad(deg.to_radians())
+    }
+
+    fn turn_rad(&mut self, d: f64) -> &mut Self {
+        let l = self.last();
         if d.abs() < 1e-6 {
             return self;
         }
@@ -338,6 +349,42 @@ mod tests {
         assert!((z - Vector3::x()).norm() < 1e-12);
         assert!((y + Vector3::z()).norm() < 1e-12);
         assert!((x + Vector3::y()).norm() < 1e-12);
+    }
+
+    /// A full turn in place keeps the position, turns 360° and peaks at the turn rate.
+    #[test]
+    fn a_full_turn_in_place_peaks_at_the_turn_rate() {
+        let mut s = RobotScript::new(1.0, 2.0, 0.0, 0.0, 1.35, -8.0);
+        s.turn_rate = 100f64.to_radians();
+        s.turn_by(360.0);
+        let p = s.path(Jitter::none());
+        let dt = 1.0 / 300.0;
+        let (mut t, mut peak, mut total) = (0.0, 0.0f64, 0.0);
+        let yaw = |t: f64| {
+            let z = p.pose(t).rotation * Vector3::z();
+            z.y.atan2(z.x)
+        };
+        while t + dt <= p.end() {
+            let d = (yaw(t + dt) - yaw(t) + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU)
+                - std::f64::consts::PI;
+            peak = peak.max(d.abs() / dt);
+            total += d;
+            assert!(
+                (p.pose(t).translation.vector - Vector3::new(1.0, 2.0, 1.35)).norm() < 1e-9,
+                "moved at {t}"
+            );
+            t += dt;
+        }
+        assert!(
+            (total.to_degrees() - 360.0).abs() < 1.0,
+            "turned {}",
+            total.to_degrees()
+        );
+        assert!(
+            (peak.to_degrees() - 100.0).abs() < 1.0,
+            "peak {} deg/s",
+            peak.to_degrees()
+        );
     }
 
     #[test]

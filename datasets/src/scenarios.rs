@@ -45,7 +45,14 @@ pub struct Scenario {
 }
 
 /// CLI names of all scenarios.
-pub const NAMES: [&str; 5] = ["desk", "loop", "aliasing", "revisit", "case-study"];
+pub const NAMES: [&str; 6] = [
+    "desk",
+    "loop",
+    "aliasing",
+    "revisit",
+    "case-study",
+    "turn-in-place",
+];
 
 /// Builds a scenario by CLI name.
 pub fn build(name: &str, seed: u64) -> Option<Scenario> {
@@ -55,6 +62,7 @@ pub fn build(name: &str, seed: u64) -> Option<Scenario> {
         "aliasing" => Some(aliasing(seed)),
         "revisit" => Some(revisit(seed)),
         "case-study" => Some(case_study(seed)),
+        "turn-in-place" => Some(turn_in_place(seed)),
         _ => None,
     }
 }
@@ -381,6 +389,73 @@ pub fn aliasing(seed: u64) -> Scenario {
     Scenario {
         name: s("aliasing"),
         description: s("Two identical rooms joined by a corridor (perceptual aliasing)."),
+        motion: s("hand-held (walking, 1.35 m)"),
+        scene: sc,
+        sessions: vec![session],
+        small_stride: 2,
+    }
+}
+
+/// `turn-in-place`: a walk through one furnished room with two full turns on the spot, at 60
+/// and 100 °/s, and 2 s standing still. Without depth a turn in place gives no parallax: no
+/// point can be triangulated while it lasts (monocular tracking must hold on by rotation).
+pub fn turn_in_place(seed: u64) -> Scenario {
+    let mut sc = Scene::default();
+    furnished_room(&mut sc, seed, [0.0, 0.0], [6.0, 5.0], &[]);
+    let mut r = RobotScript::new(1.6, 2.2, 10.0, 0.0, 1.35, -8.0);
+    r.speed = 0.6;
+    r.turn_rate = 45f64.to_radians();
+    r.mark("start").wait(1.0).mark("walk");
+    r.go(3.0, 2.4).turn_to(60.0).mark("turn at 60");
+    r.turn_rate = 60f64.to_radians();
+    r.turn_by(360.0).mark("walk on");
+    r.turn_rate = 45f64.to_radians();
+    r.go(4.3, 3.0).turn_to(-30.0).mark("turn at 100");
+    r.turn_rate = 100f64.to_radians();
+    r.turn_by(-360.0).mark("walk on again");
+    r.turn_rate = 45f64.to_radians();
+    r.go(3.4, 2.0).turn_to(150.0).mark("stand still");
+    r.wait(2.0).mark("walk to the end");
+    r.go(2.2, 2.6).wait(0.5);
+    let defs: &[(&str, &str, &[&str])] = &[
+        ("start", "camera turned on", &["Init", "Idle"]),
+        ("walk", "walks into the room", &["Mapping"]),
+        (
+            "turn at 60",
+            "turns a full circle on the spot, up to 60 °/s",
+            &["Mapping", "Localized"],
+        ),
+        ("walk on", "walks on", &["Mapping", "Localized"]),
+        (
+            "turn at 100",
+            "turns a full circle the other way, up to 100 °/s",
+            &["Mapping", "Localized"],
+        ),
+        ("walk on again", "walks on", &["Mapping", "Localized"]),
+        (
+            "stand still",
+            "stands still for 2 s",
+            &["Mapping", "Localized"],
+        ),
+        (
+            "walk to the end",
+            "walks on and stops",
+            &["Mapping", "Localized"],
+        ),
+    ];
+    let session = Session {
+        dir: None,
+        name: s("turn-in-place"),
+        legs: vec![r.path(Jitter::new(mix(seed ^ 0x905), 0.005, 0.005, false))],
+        steps: steps(&r.marks, defs, 0),
+        dark: vec![],
+        stamp0: STAMP0,
+    };
+    Scenario {
+        name: s("turn-in-place"),
+        description: s(
+            "One furnished room; a walk with two full turns on the spot (60 and 100 °/s) and 2 s standing still.",
+        ),
         motion: s("hand-held (walking, 1.35 m)"),
         scene: sc,
         sessions: vec![session],
