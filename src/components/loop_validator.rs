@@ -232,7 +232,10 @@ pub fn validate(
     for &(qi, p) in &pairs {
         matches[qi] = Some(p);
     }
-    refine_and_judge(cfg, geo, q, map, matched, &initial, matches)
+    let Some(local) = local_window(map, matched) else {
+        return reject(Rejection::TooFewMatches, 0, None);
+    };
+    refine_and_judge(cfg, geo, q, map, matched, &local, &initial, matches)
 }
 
 /// Validation of a hypothesis the pool already holds: the query's pose in `map` predicted
@@ -268,7 +271,7 @@ pub fn validate_from_prior(
     if found < cfg.min_validation_matches as usize {
         return reject(Rejection::TooFewMatches, found, None);
     }
-    refine_and_judge(cfg, geo, q, map, matched, prior, matches)
+    refine_and_judge(cfg, geo, q, map, matched, &local, prior, matches)
 }
 
 /// Keyframe `matched` of `map` and its 10 best covisible ones: the local map a validation is
@@ -287,22 +290,21 @@ fn local_window(map: &Map, matched: KfId) -> Option<Vec<KfId>> {
 const PRIOR_SEARCH_RADIUS_PX: f64 = 15.0;
 
 /// The common end of a validation: the pose from `initial` and the correspondences `matches`
-/// refined against the matched keyframe's local map (two projection searches, 8 then 4
-/// pixels), and judged by its inliers; with the query's own points (monocular), the scale.
+/// refined against the matched keyframe's local map `local` ([`local_window`]; two projection
+/// searches, 8 then 4 pixels), and judged by its inliers; with the query's own points
+/// (monocular), the scale.
+#[allow(clippy::too_many_arguments)]
 fn refine_and_judge(
     cfg: &LoopClosingConfig,
     geo: &ImageGeometry,
     q: &Query,
     map: &Map,
     matched: KfId,
+    local: &[KfId],
     initial: &Isometry3<f64>,
     mut matches: Vec<Option<PointId>>,
 ) -> Verdict {
     let reject = rejection_of(matched);
-    // Refinement against the matched keyframe's local map.
-    let Some(local) = local_window(map, matched) else {
-        return reject(Rejection::TooFewMatches, 0, None);
-    };
     let (mut pose, mut inliers) = refine(geo, q.m, map, initial, &matches);
     for radius in [8.0, 4.0] {
         let mut m2: Vec<Option<PointId>> = vec![None; q.m.len()];
@@ -311,7 +313,7 @@ fn refine_and_judge(
                 m2[i] = matches[i];
             }
         }
-        let found = search_local_map(geo, q.m, map, &local, &pose, radius, &mut m2);
+        let found = search_local_map(geo, q.m, map, local, &pose, radius, &mut m2);
         let (p2, inl2) = refine(geo, q.m, map, &pose, &m2);
         tracing::trace!(
             "validate kf {matched}: {} projected matches, {} inliers",
