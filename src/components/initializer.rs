@@ -49,6 +49,10 @@ pub struct Initializer {
     pub geo: ImageGeometry,
     /// Monocular: the first view of the pair being tried.
     reference: Option<Measurement>,
+    /// Monocular: when the selected two-view model is ambiguous, try the other
+    /// ([`TwoViewParams::try_other_model`]); the controller turns it off where a new map
+    /// should wait.
+    pub try_other_model: bool,
 }
 
 /// What [`Initializer::match_to_reference`] found: reference keypoint → current keypoint.
@@ -65,6 +69,7 @@ impl Initializer {
             mono,
             geo,
             reference: None,
+            try_other_model: true,
         }
     }
 
@@ -131,7 +136,11 @@ impl Initializer {
         }
         let x1: Vec<Vector2<f64>> = matches.iter().map(|&(a, _)| r.keypoints[a].un).collect();
         let x2: Vec<Vector2<f64>> = matches.iter().map(|&(_, b)| m.keypoints[b].un).collect();
-        let rec = match initialize_two_view(&x1, &x2, &self.intr, &TwoViewParams::default()) {
+        let params = TwoViewParams {
+            try_other_model: self.try_other_model,
+            ..Default::default()
+        };
+        let rec = match initialize_two_view(&x1, &x2, &self.intr, &params) {
             Ok(rec) => rec,
             Err(rej) => {
                 tracing::debug!(

@@ -69,6 +69,12 @@ pub const CHI2_2DOF_99: f64 = 9.21;
 /// (ORB-SLAM's `CheckRT`).
 const COS_PARALLAX_TRIANGULATE: f64 = 0.99998;
 
+/// The other model's reconstruction (see [`TwoViewParams::try_other_model`]) needs this many
+/// times the usual parallax: the selected model's ambiguity says the views barely tell the
+/// motions apart, and at the usual 1° a fundamental-matrix start made maps that drifted
+/// (small `desk` mono: 7.7 cm after a merge, where a start at 4° gave under 3 cm).
+const OTHER_MODEL_PARALLAX_FACTOR: f64 = 2.0;
+
 /// A motion hypothesis `(R, t)`: `X_c2 = R · X_c1 + t`.
 pub type Motion = (Matrix3<f64>, Vector3<f64>);
 
@@ -126,6 +132,8 @@ pub struct TwoViewParams {
     pub reproj_chi2: f64,
     /// Re-estimate the best minimal model on its inliers (see the module docs).
     pub refine: bool,
+    /// When the selected model's hypotheses are ambiguous, reconstruct from the other model.
+    pub try_other_model: bool,
 }
 
 impl Default for TwoViewParams {
@@ -142,6 +150,7 @@ impl Default for TwoViewParams {
             ambiguity_ratio_f: 0.7,
             reproj_chi2: 4.0,
             refine: true,
+            try_other_model: true,
         }
     }
 }
@@ -759,11 +768,46 @@ pub fn initialize_two_view(
     } else {
         ModelKind::Fundamental
     };
-    rej.model = Some(kind);
-    let chosen = match kind {
-        ModelKind::Homography => h,
-        ModelKind::Fundamental => f,
+    let (chosen, other) = match kind {
+        ModelKind::Homography => ((kind, h), (ModelKind::Fundamental, f)),
+        ModelKind::Fundamental => ((kind, f), (ModelKind::Homography, h)),
     };
+    let first = reconstruct(chosen.0, chosen.1, x1, x2, k, params, rej);
+    // The selected model's motion hypotheses may tie where the other model's do not: at a
+    // few degrees of parallax a 3-D scene is still fitted by `H` within σ (R_H just above the
+    // threshold), and the eight solutions of `H` then explain the points about equally well.
+    // `F` decomposes into four, of which only one puts the points in front of both cameras.
+    let mut out = match first {
+        Err(r) if params.try_other_model && r.reason == RejectReason::Ambiguous => {
+            let strict = TwoViewParams {
+                min_parallax_deg: params.min_parallax_deg * OTHER_MODEL_PARALLAX_FACTOR,
+                ..*params
+            };
+            reconstruct(other.0, other.1, x1, x2, k, &strict, rej).map_err(|_| r)
+        }
+        x => x,
+    };
+    if let Ok(rec) = out.as_mut() {
+        rec.r_h = r_h;
+        rec.score_h = sh;
+        rec.score_f = sf;
+    }
+    out
+}
+
+/// The reconstruction from one fitted model: decomposition into motion hypotheses, the
+/// triangulation check of each, and the acceptance of a clear winner. `rej` carries what was
+/// measured before (`R_H`).
+fn reconstruct(
+    kind: ModelKind,
+    chosen: Option<ScoredModel>,
+    x1: &[Vector2<f64>],
+    x2: &[Vector2<f64>],
+    k: &Intrinsics,
+    params: &TwoViewParams,
+    mut rej: TwoViewRejection,
+) -> Result<TwoViewReconstruction, TwoViewRejection> {
+    rej.model = Some(kind);
     let Some(mut model) = chosen else {
         rej.reason = RejectReason::TooFewInliers;
         return Err(rej);
@@ -841,9 +885,9 @@ pub fn initialize_two_view(
     Ok(TwoViewReconstruction {
         model: kind,
         matrix: model.matrix,
-        r_h,
-        score_h: sh,
-        score_f: sf,
+        r_h: rej.r_h,
+        score_h: 0.0,
+        score_f: 0.0,
         rotation: Rotation3::from_matrix(&r),
         translation: t,
         points: bc.points.clone(),
