@@ -9,5 +9,6 @@ pub mod loop_detector;
 pub mod loop_validator;
 pub mod map_merger;
 pub mod preprocess;
+pub mod rotation;
 pub mod tracker;
 pub mod two_view;

@@ -20,6 +20,9 @@ pub enum TrackMethod {
     MotionModel,
     ReferenceKeyframe,
     Pnp,
+    /// Monocular: too few map points in view, a rotation from key-point matches to the last
+    /// tracked frame ([`crate::components::rotation`]); the position is kept.
+    RotationOnly,
     Lost,
 }
 
@@ -63,7 +66,29 @@ pub struct Tracker {
     /// Orientation of each key point of the last tracked frame (rotation-consistency check).
     last_angles: Vec<f32>,
     pub reference_kf: Option<KfId>,
+    /// Monocular: rotation-only tracking is allowed, from this view (see
+    /// [`Self::with_rotation_only`]). `None` with depth, where a turn keeps its points.
+    rotation: Option<RotationOnly>,
 }
+
+/// Monocular rotation-only tracking: the view rotations are measured from.
+#[derive(Clone, Default)]
+struct RotationOnly {
+    /// The last frame tracked on map points, or the last rotation-only frame that became the
+    /// anchor; `None` after a loss or a change of the map under the camera.
+    anchor: Option<(Measurement, Isometry3<f64>)>,
+}
+
+/// Fewest inliers of a rotation-only pose (the tracker's `min_inliers` is for 3-D points;
+/// a rotation has 3 degrees of freedom, not 6, but is chained from frame to frame).
+const ROTATION_MIN_INLIERS: usize = 50;
+/// A rotation that explains fewer of its matches than this is refused: the camera moved,
+/// and near points showed parallax.
+const ROTATION_MIN_INLIER_FRACTION: f64 = 0.8;
+/// A rotation-only frame with fewer inliers than this becomes the anchor of the next: the
+/// view has turned away from the anchor's (each new anchor adds its error to the chain, so
+/// not every frame).
+const ROTATION_REANCHOR_INLIERS: usize = 150;
 
 /// Most consecutive frames refused as implausible before the tracker accepts a jump. (Two,
 /// with the check also across gaps, refused real frames one after another: small `revisit`
@@ -116,6 +141,19 @@ impl Tracker {
             last_matches: Vec::new(),
             last_angles: Vec::new(),
             reference_kf: None,
+            rotation: None,
+        }
+    }
+
+    /// Monocular: allow rotation-only tracking when the map's points leave the view.
+    pub fn monocular(mut self, mono: bool) -> Self {
+        self.rotation = mono.then(RotationOnly::default);
+        self
+    }
+
+    fn clear_anchor(&mut self) {
+        if let Some(r) = self.rotation.as_mut() {
+            r.anchor = None;
         }
     }
 
@@ -140,6 +178,7 @@ impl Tracker {
             .collect();
         self.last_angles.clear();
         self.reference_kf = Some(reference_kf);
+        self.clear_anchor();
     }
 
     /// The frame just tracked closed a loop in its own map: the map moved under the camera,
@@ -182,6 +221,7 @@ impl Tracker {
         }
         self.last_matches = by_keypoint.into_iter().collect();
         self.reference_kf = Some(reference_kf);
+        self.clear_anchor();
     }
 
     /// The map under the camera was re-cut (a revoked closure, `Atlas::revoke`): the world
@@ -212,6 +252,7 @@ impl Tracker {
             .filter(|(_, q)| seen.insert(*q))
             .collect();
         self.reference_kf = Some(reference_kf);
+        self.clear_anchor();
     }
 
     /// A frame was not tracked. The last tracked frame and the motion model stay: within the
@@ -220,6 +261,7 @@ impl Tracker {
     /// a longer break a new map resets the tracker.
     pub fn lose(&mut self) {
         self.twist = Vector6::zeros();
+        self.clear_anchor();
     }
 
     /// The constant-velocity prediction for a frame at `t`: the velocity applied once per
@@ -249,7 +291,7 @@ impl Tracker {
             attempt = self.with_reference_keyframe(m, map);
         }
         let Some((pose, matches, method)) = attempt else {
-            return self.lost(m);
+            return self.with_rotation_only(m, prediction);
         };
         let (mut pose, mut matches, mut n_inliers, visible) =
             self.with_local_map(m, map, pose, matches);
@@ -266,7 +308,7 @@ impl Tracker {
         let mean_chi2 = self.mean_chi2(m, map, &pose, &matches);
         let able = n_inliers >= self.cfg.min_inliers as usize;
         if !able {
-            return self.lost(m);
+            return self.with_rotation_only(m, prediction);
         }
         // A frame just after a tracked one that lands far off the constant-velocity
         // prediction is a false measurement (an image from elsewhere that the map also
@@ -296,27 +338,7 @@ impl Tracker {
         }
         self.refused_in_a_row = 0;
         let reference_kf = reference_keyframe(map, &matches);
-        if let (Some(last), Some(last_t)) = (self.last_pose, self.last_t) {
-            // Renormalised: the motion model composes poses every frame and would amplify any
-            // rounding drift of the rotation geometrically.
-            let mut v = pose * last.inverse();
-            v.rotation.renormalize();
-            // Across missing frames, the motion of one interval (rotation interpolated,
-            // translation divided: close enough for a prediction).
-            let n = frame_intervals(m.t - last_t, self.velocity_dt);
-            if n > 1 {
-                let step = 1.0 / n as f64;
-                v = Isometry3::from_parts(
-                    (v.translation.vector * step).into(),
-                    nalgebra::UnitQuaternion::identity().slerp(&v.rotation, step),
-                );
-            } else {
-                self.velocity_dt = m.t - last_t;
-            }
-            self.velocity = Some(v);
-        }
-        self.last_pose = Some(pose);
-        self.last_t = Some(m.t);
+        self.advance(pose, m.t);
         self.last_angles = m.keypoints.iter().map(|k| k.angle).collect();
         self.last_matches = matches
             .iter()
@@ -325,6 +347,9 @@ impl Tracker {
             .collect();
         if reference_kf.is_some() {
             self.reference_kf = reference_kf;
+        }
+        if let Some(r) = self.rotation.as_mut() {
+            r.anchor = Some((m.clone(), pose));
         }
         TrackResult {
             pose_cw: pose,
@@ -336,6 +361,112 @@ impl Tracker {
             visible,
             twist: self.twist,
             mean_chi2,
+        }
+    }
+
+    /// The frame at `t` was tracked at `pose`: the motion model follows.
+    fn advance(&mut self, pose: Isometry3<f64>, t: f64) {
+        if let (Some(last), Some(last_t)) = (self.last_pose, self.last_t) {
+            // Renormalised: the motion model composes poses every frame and would amplify any
+            // rounding drift of the rotation geometrically.
+            let mut v = pose * last.inverse();
+            v.rotation.renormalize();
+            // Across missing frames, the motion of one interval (rotation interpolated,
+            // translation divided: close enough for a prediction).
+            let n = frame_intervals(t - last_t, self.velocity_dt);
+            if n > 1 {
+                let step = 1.0 / n as f64;
+                v = Isometry3::from_parts(
+                    (v.translation.vector * step).into(),
+                    nalgebra::UnitQuaternion::identity().slerp(&v.rotation, step),
+                );
+            } else {
+                self.velocity_dt = t - last_t;
+            }
+            self.velocity = Some(v);
+        }
+        self.last_pose = Some(pose);
+        self.last_t = Some(t);
+    }
+
+    /// Monocular, when the map's points do not hold the frame: its rotation from the anchor
+    /// view's key points ([`crate::components::rotation`]), its position the anchor's. Refused
+    /// (lost) when the last tracked frame is more than `MAX_JUDGED_INTERVALS` back, when the
+    /// rotation explains too few matches (the camera moved: frozen, the position would be
+    /// wrong), or when it turned implausibly far from the motion model's prediction.
+    fn with_rotation_only(
+        &mut self,
+        m: &Measurement,
+        prediction: Option<(Isometry3<f64>, usize)>,
+    ) -> TrackResult {
+        let Some((anchor, anchor_pose)) = self.rotation.as_ref().and_then(|r| r.anchor.as_ref())
+        else {
+            return self.lost(m);
+        };
+        let predicted = match prediction {
+            Some((p, n)) if n <= MAX_JUDGED_INTERVALS => p,
+            _ => return self.lost(m),
+        };
+        let predicted_rel = predicted.rotation * anchor_pose.rotation.inverse();
+        let mut est = None;
+        for radius in [self.cfg.search_radius_px, 2.0 * self.cfg.search_radius_px] {
+            est = crate::components::rotation::estimate(
+                anchor,
+                m,
+                &self.geo,
+                &predicted_rel,
+                radius,
+                ROTATION_MIN_INLIERS,
+            )
+            .filter(|e| e.inlier_fraction() >= ROTATION_MIN_INLIER_FRACTION);
+            if est.is_some() {
+                break;
+            }
+        }
+        let Some(est) = est else {
+            tracing::debug!("frame {}: no rotation-only pose", m.frame);
+            return self.lost(m);
+        };
+        let rotation = est.rotation * anchor_pose.rotation;
+        let center = anchor_pose.inverse().translation.vector;
+        let pose = Isometry3::from_parts((-(rotation * center)).into(), rotation);
+        let off = (pose.rotation * predicted.rotation.inverse())
+            .angle()
+            .to_degrees();
+        let r = (self.velocity_dt * 30.0).max(1.0);
+        if off > r * self.cfg.max_jump_deg {
+            tracing::debug!(
+                "frame {}: rotation-only pose {off:.1} deg off the motion model: refused",
+                m.frame
+            );
+            return self.lost(m);
+        }
+        tracing::debug!(
+            "frame {}: rotation only from frame {}: {} of {} matches, mean chi2 {:.2}",
+            m.frame,
+            anchor.frame,
+            est.inliers,
+            est.matches,
+            est.mean_chi2
+        );
+        self.refused_in_a_row = 0;
+        self.twist = Vector6::zeros();
+        self.advance(pose, m.t);
+        if est.inliers < ROTATION_REANCHOR_INLIERS
+            && let Some(r) = self.rotation.as_mut()
+        {
+            r.anchor = Some((m.clone(), pose));
+        }
+        TrackResult {
+            pose_cw: pose,
+            matches: vec![None; m.len()],
+            n_inliers: 0,
+            able_to_track: true,
+            method: TrackMethod::RotationOnly,
+            reference_kf: self.reference_kf,
+            visible: Vec::new(),
+            twist: self.twist,
+            mean_chi2: est.mean_chi2,
         }
     }
 

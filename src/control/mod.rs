@@ -215,7 +215,7 @@ impl StateMachine {
                 geo.clone(),
                 config.sequence.mono,
             ),
-            tracker: Tracker::new(&config.tracker, geo.clone()),
+            tracker: Tracker::new(&config.tracker, geo.clone()).monocular(config.sequence.mono),
             merger: MapMerger::new(&config.mapping, geo.clone()).monocular(config.sequence.mono),
             detector: LoopDetector::from_config(&config.loop_closing),
             reloc_pool: Pool::default(),

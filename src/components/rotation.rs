@@ -1,0 +1,204 @@
+//! Rotation-only camera motion between two monocular views (part of the Tracker, paper Table I).
+//!
+//! # Why
+//! Turning in place gives no parallax: without depth no new point can be triangulated, and the
+//! mapped points leave the view as the camera turns. The tracker then has too few 3-D points,
+//! but the key points of the last tracked frame still constrain the *rotation*: under a pure
+//! rotation `R` a bearing `b` seen in one view is seen as `R b` in the other, whatever its depth
+//! (points at infinity, the homography `K R K⁻¹`). So a frame that the map no longer holds can
+//! still be posed: the rotation from key-point matches, the position kept (Pirchheim et al.,
+//! "Handling pure camera rotation in keyframe-based SLAM", 2013; Gauglitz et al. 2012).
+//!
+//! # How
+//! Matches are searched where the predicted rotation puts each key point of the anchor view
+//! (grid search, descriptor distance and ratio, orientation consistency), the rotation comes from
+//! a two-bearing RANSAC (Kabsch), and it is refined on all inliers. A match is an inlier when the
+//! rotated bearing reprojects within the χ² (2 dof, 95 %) gate of its pyramid level. A camera
+//! that translates shows it as matches the rotation cannot explain: the inlier fraction is
+//! reported, and the tracker refuses a rotation that explains too few of them.
+
+use crate::components::preprocess::{
+    ImageGeometry, Measurement, dominant_rotation_bins, nearest_descriptor, rotation_bin,
+};
+use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector2, Vector3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+/// χ² 95 % quantile, 2 dof: the reprojection gate of an inlier, in units of its level's σ².
+const CHI2_2DOF: f64 = 5.991;
+/// Largest Hamming distance of a match (ORB-SLAM's TH_LOW) and Lowe's ratio.
+const MAX_DISTANCE: u32 = 50;
+const RATIO: f64 = 0.8;
+/// RANSAC iterations; two bearings fix a rotation, so few are needed even at half outliers.
+const ITERATIONS: usize = 64;
+
+/// What [`estimate`] found.
+#[derive(Debug, Clone)]
+pub struct RotationEstimate {
+    /// Rotation of camera coordinates from the anchor view to the current one:
+    /// `b_current ≈ rotation · b_anchor`.
+    pub rotation: UnitQuaternion<f64>,
+    /// Matches found by the search.
+    pub matches: usize,
+    /// Matches the rotation explains.
+    pub inliers: usize,
+    /// Mean χ² (squared reprojection error over the level's σ²) of the inliers.
+    pub mean_chi2: f64,
+}
+
+impl RotationEstimate {
+    /// Fraction of the matches the rotation explains: close to 1 for a rotation (noise and
+    /// wrong matches aside), lower when the camera also moved and near points show parallax.
+    pub fn inlier_fraction(&self) -> f64 {
+        self.inliers as f64 / self.matches.max(1) as f64
+    }
+}
+
+/// Unit bearing of an undistorted pixel.
+fn bearing(geo: &ImageGeometry, un: &Vector2<f64>) -> Vector3<f64> {
+    let k = &geo.intr;
+    Vector3::new((un.x - k.cx) / k.fx, (un.y - k.cy) / k.fy, 1.0).normalize()
+}
+
+/// The pixel of a camera-frame direction, if it is in front of the camera and in the image.
+fn project(geo: &ImageGeometry, d: &Vector3<f64>) -> Option<Vector2<f64>> {
+    if d.z <= 1e-6 {
+        return None;
+    }
+    let k = &geo.intr;
+    let p = Vector2::new(k.fx * d.x / d.z + k.cx, k.fy * d.y / d.z + k.cy);
+    (p.x >= 0.0 && p.y >= 0.0 && p.x < geo.width && p.y < geo.height).then_some(p)
+}
+
+/// The rotation that best maps bearings `a` onto `b` (least squares on unit vectors, Kabsch).
+fn kabsch(pairs: impl Iterator<Item = (Vector3<f64>, Vector3<f64>)>) -> Option<Rotation3<f64>> {
+    let mut m = Matrix3::zeros();
+    for (a, b) in pairs {
+        m += b * a.transpose();
+    }
+    let svd = m.svd(true, true);
+    let (u, vt) = (svd.u?, svd.v_t?);
+    let d = (u * vt).determinant().signum();
+    let r = u * Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, d)) * vt;
+    r.iter()
+        .all(|x| x.is_finite())
+        .then(|| Rotation3::from_matrix_unchecked(r))
+}
+
+/// The rotation from `anchor` to `m`, searching each anchor key point within `radius_px` (at
+/// level 0, growing with the level) of where `predicted` puts it. `None` with fewer than
+/// `min_inliers` inliers.
+pub fn estimate(
+    anchor: &Measurement,
+    m: &Measurement,
+    geo: &ImageGeometry,
+    predicted: &UnitQuaternion<f64>,
+    radius_px: f64,
+    min_inliers: usize,
+) -> Option<RotationEstimate> {
+    // Current key point → (distance, anchor key point).
+    let mut best: Vec<Option<(u32, usize)>> = vec![None; m.len()];
+    let anchor_bearings: Vec<Vector3<f64>> = anchor
+        .keypoints
+        .iter()
+        .map(|k| bearing(geo, &k.un))
+        .collect();
+    for (a, ka) in anchor.keypoints.iter().enumerate() {
+        let Some(p) = project(geo, &(predicted * anchor_bearings[a])) else {
+            continue;
+        };
+        let r = radius_px * geo.scales[ka.octave as usize];
+        let near = m.grid.in_area(
+            &m.keypoints,
+            p.x,
+            p.y,
+            r,
+            ka.octave.saturating_sub(1),
+            ka.octave.saturating_add(1),
+        );
+        let Some((b, d)) = nearest_descriptor(
+            &anchor.descriptors[a],
+            near.into_iter().map(|b| (b, &m.descriptors[b])),
+            MAX_DISTANCE,
+            RATIO,
+        ) else {
+            continue;
+        };
+        if best[b].is_none_or(|(d0, _)| d < d0) {
+            best[b] = Some((d, a));
+        }
+    }
+    let mut pairs: Vec<(usize, usize)> = best
+        .iter()
+        .enumerate()
+        .filter_map(|(b, x)| x.map(|(_, a)| (a, b)))
+        .collect();
+    let bin =
+        |&(a, b): &(usize, usize)| rotation_bin(anchor.keypoints[a].angle, m.keypoints[b].angle);
+    let keep = dominant_rotation_bins(pairs.iter().map(bin));
+    pairs.retain(|x| keep.contains(&bin(x)));
+    if pairs.len() < min_inliers.max(2) {
+        return None;
+    }
+    let a: Vec<Vector3<f64>> = pairs.iter().map(|&(i, _)| anchor_bearings[i]).collect();
+    let b: Vec<Vector2<f64>> = pairs.iter().map(|&(_, j)| m.keypoints[j].un).collect();
+    let sigma2: Vec<f64> = pairs
+        .iter()
+        .map(|&(_, j)| geo.scales[m.keypoints[j].octave as usize].powi(2))
+        .collect();
+    let bb: Vec<Vector3<f64>> = b.iter().map(|u| bearing(geo, u)).collect();
+    // χ² of each pair under a rotation (∞ behind the camera).
+    let chi2 = |r: &Rotation3<f64>, i: usize| -> f64 {
+        let d = r * a[i];
+        if d.z <= 1e-6 {
+            return f64::INFINITY;
+        }
+        let k = &geo.intr;
+        let p = Vector2::new(k.fx * d.x / d.z + k.cx, k.fy * d.y / d.z + k.cy);
+        (p - b[i]).norm_squared() / sigma2[i]
+    };
+    let inliers_of = |r: &Rotation3<f64>| -> Vec<usize> {
+        (0..a.len()).filter(|&i| chi2(r, i) <= CHI2_2DOF).collect()
+    };
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let mut best_inl: Vec<usize> = Vec::new();
+    for _ in 0..ITERATIONS {
+        let i = rng.random_range(0..a.len());
+        let j = rng.random_range(0..a.len());
+        if i == j {
+            continue;
+        }
+        let Some(r) = kabsch([(a[i], bb[i]), (a[j], bb[j])].into_iter()) else {
+            continue;
+        };
+        let inl = inliers_of(&r);
+        if inl.len() > best_inl.len() {
+            best_inl = inl;
+        }
+    }
+    let mut rotation = None;
+    for _ in 0..3 {
+        if best_inl.len() < min_inliers.max(2) {
+            return None;
+        }
+        let r = kabsch(best_inl.iter().map(|&i| (a[i], bb[i])))?;
+        let inl = inliers_of(&r);
+        let same = inl == best_inl;
+        best_inl = inl;
+        rotation = Some(r);
+        if same {
+            break;
+        }
+    }
+    let r = rotation?;
+    if best_inl.len() < min_inliers {
+        return None;
+    }
+    let mean_chi2 = best_inl.iter().map(|&i| chi2(&r, i)).sum::<f64>() / best_inl.len() as f64;
+    Some(RotationEstimate {
+        rotation: UnitQuaternion::from_rotation_matrix(&r),
+        matches: pairs.len(),
+        inliers: best_inl.len(),
+        mean_chi2,
+    })
+}
