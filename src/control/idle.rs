@@ -58,15 +58,11 @@ impl StateMachine {
             // it starts is lost at once (discarded), tracking resumes where it was.
             let resume = (same_map && recent).then(|| self.tracking_at()).flatten();
             let lost = self.lost_keyframes();
-            // While the lost map may still take the camera back (decision 0019), a new
-            // monocular map starts only on a pair the selected two-view model accepts: the
-            // other model's starts come earlier, and a new map begun before the lost place is
-            // back in view costs a Sim3 merge where a relocalization would do (decision 0027).
-            self.initializer.try_other_model = !(same_map
-                && self.cfg.controller.relocalize_lost_map
-                && lost
-                    .as_ref()
-                    .is_some_and(|(_, t)| m.t - t <= LOST_PLACE_WINDOW_S));
+            // After a loss a new monocular map starts only on a pair the selected two-view
+            // model accepts: the other model's starts come earlier, before the lost place is
+            // back in view, and a new map then costs a Sim3 merge where a relocalization in the
+            // lost map would do (decisions 0019, 0027).
+            self.initializer.try_other_model = false;
             let pose = self.start_new_map(m, timing)?;
             self.resume = resume;
             if let Some((keyframes, _)) = &lost {

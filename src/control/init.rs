@@ -13,6 +13,9 @@ impl StateMachine {
     /// Init: the initializer on each measurement until it reports `initialized`.
     pub(super) fn initialize(&mut self, m: &Measurement, timing: &mut Timing) -> Option<Pose> {
         self.flags.able_to_track = false;
+        // No map yet, nothing to return to: the first map starts as soon as a pair allows,
+        // from the other two-view model when the selected one is ambiguous (decision 0027).
+        self.initializer.try_other_model = true;
         let pose = self.start_new_map(m, timing)?;
         self.flags.initialized = true;
         // The first keyframe's frame is located (at the origin of the new map).
