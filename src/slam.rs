@@ -53,6 +53,10 @@ pub struct FrameResult {
     pub pools_accepted: Vec<PoolId>,
     /// Pools revoked on this frame (Corrupted Map).
     pub pools_revoked: Vec<PoolId>,
+    /// Earlier frames posed on this frame: without depth, the frames the two-view
+    /// initializer waited on, posed once their map started. Their poses are in
+    /// [`Slam::trajectory`] from now on.
+    pub earlier_frames: Vec<usize>,
 }
 
 /// Depth as a caller holds it, row-major at the camera's size.
@@ -292,6 +296,21 @@ impl Slam {
                     }
                 });
         }
+        // Earlier frames posed now (monocular frames the initializer waited on): in frame
+        // order among the rest.
+        for e in &out.earlier {
+            let at = self.rec.relative.partition_point(|(f, ..)| *f < e.frame);
+            if self
+                .rec
+                .relative
+                .get(at)
+                .is_none_or(|(f, ..)| *f != e.frame)
+            {
+                self.rec
+                    .relative
+                    .insert(at, (e.frame, e.t, e.kf, e.relative));
+            }
+        }
         let mut pose_wc = None;
         let mut map = None;
         if let Some((rel, m, kf)) = out.pose {
@@ -321,6 +340,7 @@ impl Slam {
                 .map(|p| p.id)
                 .collect(),
             pools_revoked: out.revocations.iter().map(|r| r.pool).collect(),
+            earlier_frames: out.earlier.iter().map(|e| e.frame).collect(),
         };
         Ok((result, m, out))
     }

@@ -98,6 +98,11 @@ class FrameResult:
     def pools_revoked(self) -> List[int]:
         """Pools the Corrupted Map state revoked on this frame."""
     @property
+    def earlier_frames(self) -> List[int]:
+        """Earlier frames posed on this frame: without depth, the frames the two-view
+        initializer waited on, posed once their map started (in `Slam.trajectory()` from now
+        on)."""
+    @property
     def process_ms(self) -> float:
         """Milliseconds homing spent on the frame (without the Python call around it)."""
 

@@ -400,6 +400,12 @@ impl FrameResult {
     fn pools_revoked(&self) -> Vec<u32> {
         self.inner.pools_revoked.clone()
     }
+    /// Earlier frames posed on this frame: without depth, the frames the two-view initializer
+    /// waited on, posed once their map started (in `Slam.trajectory()` from now on).
+    #[getter]
+    fn earlier_frames(&self) -> Vec<usize> {
+        self.inner.earlier_frames.clone()
+    }
     /// Milliseconds homing spent on the frame (the Rust call, without the Python around it).
     #[getter]
     fn process_ms(&self) -> f64 {

@@ -49,6 +49,13 @@ pub struct Initializer {
     pub geo: ImageGeometry,
     /// Monocular: the first view of the pair being tried.
     reference: Option<Measurement>,
+    /// Monocular: the frames after the reference that did not make a pair with it, kept so
+    /// that they can be posed in the map once a later pair starts it (#67: initialisation
+    /// that waits without losing frames). At most `MONO_MAX_REFERENCE_AGE_S` of frames.
+    waited: Vec<Measurement>,
+    /// Monocular: the reference and the waited frames of the pair that just started a map,
+    /// for [`Initializer::take_waited`].
+    started_from: Option<(Measurement, Vec<Measurement>)>,
     /// Monocular: when the selected two-view model is ambiguous, try the other
     /// ([`TwoViewParams::try_other_model`]); the controller turns it off where a new map
     /// should wait.
@@ -69,6 +76,8 @@ impl Initializer {
             mono,
             geo,
             reference: None,
+            waited: Vec::new(),
+            started_from: None,
             try_other_model: true,
         }
     }
@@ -108,6 +117,14 @@ impl Initializer {
     /// Forgets the monocular reference (a map was started, or the controller starts over).
     pub fn reset(&mut self) {
         self.reference = None;
+        self.waited.clear();
+    }
+
+    /// Monocular, after a map was started: its first view (the reference, the map's first
+    /// keyframe) and the frames between it and the second, in order. They had no pose when
+    /// they came; the map can now give them one.
+    pub fn take_waited(&mut self) -> Option<(Measurement, Vec<Measurement>)> {
+        self.started_from.take()
     }
 
     /// Monocular: pairs `m` with the reference view. The first call (and any call where the
@@ -120,6 +137,7 @@ impl Initializer {
         });
         if stale {
             self.reference = Some(m.clone());
+            self.waited.clear();
             return None;
         }
         let r = self.reference.as_ref().expect("checked above");
@@ -132,6 +150,7 @@ impl Initializer {
                 r.frame
             );
             self.reference = Some(m.clone());
+            self.waited.clear();
             return None;
         }
         let x1: Vec<Vector2<f64>> = matches.iter().map(|&(a, _)| r.keypoints[a].un).collect();
@@ -154,6 +173,7 @@ impl Initializer {
                     rej.n_good,
                     rej.parallax_deg
                 );
+                self.waited.push(m.clone());
                 return None;
             }
         };
@@ -169,7 +189,10 @@ impl Initializer {
                 rec.n_good,
                 rec.parallax.orb_deg
             );
-            self.reference = None;
+            let reference = self.reference.take().expect("paired above");
+            self.started_from = Some((reference, std::mem::take(&mut self.waited)));
+        } else {
+            self.waited.push(m.clone());
         }
         built
     }

@@ -69,6 +69,9 @@ impl StateMachine {
         if id != cur || self.last_tracked_t != Some(t0) {
             return;
         }
+        if self.waited_poses.as_ref().is_some_and(|(w, _)| *w == id) {
+            self.waited_poses = None;
+        }
         if let Some(map) = self.atlas.discard_map(id) {
             for k in map.keyframes.keys() {
                 self.detector.remove(*k as u64);
@@ -100,6 +103,7 @@ impl StateMachine {
     pub(super) fn tracked(&mut self, cur: MapId, track: &TrackResult, m: &Measurement) -> Pose {
         self.flags.able_to_track = true;
         self.last_tracked_t = Some(m.t);
+        self.release_waited_poses(m);
         self.note_merge_evidence(track, m);
         let map = self.atlas.maps.get_mut(&cur).expect("current map exists");
         self.merger.note_tracked(map, track);

@@ -1,6 +1,6 @@
 //! Init: the initializer on each measurement until a map starts, and starting maps.
 
-use super::StateMachine;
+use super::{EarlierPose, StateMachine};
 use crate::atlas::MapId;
 use crate::components::preprocess::Measurement;
 use crate::map::KfId;
@@ -34,6 +34,7 @@ impl StateMachine {
         }
         let pose = map.keyframes[&kf].pose_cw;
         let id = self.atlas.insert_map(map);
+        self.pose_waited_frames(id);
         self.start_tracking_in(id, kf, pose, m);
         self.founded = Some((id, m.t));
         tracing::info!("frame {}: new map {id}", m.frame);
@@ -58,5 +59,61 @@ impl StateMachine {
         self.reloc_pool.clear();
         self.loop_pool.clear();
         self.idle_pool.clear();
+    }
+
+    /// Monocular: the frames the initializer waited on (its pair's first view, which is the
+    /// new map's first keyframe, and the frames up to the second) are tracked in the new map,
+    /// in order, from the first keyframe, by a tracker of their own. Their poses are held
+    /// until the map is confirmed by the next tracked frame ([`Self::release_waited_poses`]).
+    /// Before, each of them had no pose: fr1_xyz300 started its map at frame 8 with frames
+    /// 0–7 unposed.
+    fn pose_waited_frames(&mut self, id: MapId) {
+        let Some((reference, waited)) = self.initializer.take_waited() else {
+            return;
+        };
+        let map = &self.atlas.maps[&id];
+        let Some(first) = map.keyframes.values().next() else {
+            return;
+        };
+        let mut poses = vec![EarlierPose {
+            frame: reference.frame,
+            t: reference.t,
+            relative: Isometry3::identity(),
+            kf: first.id,
+        }];
+        let mut tracker =
+            crate::components::tracker::Tracker::new(&self.cfg.tracker, self.geo.clone())
+                .monocular(true);
+        tracker.reset(first.pose_cw, reference.t, &first.points, first.id);
+        for w in &waited {
+            let track = tracker.track(w, map);
+            if !track.able_to_track {
+                continue;
+            }
+            let Some(k) = track.reference_kf.and_then(|k| map.keyframes.get(&k)) else {
+                continue;
+            };
+            poses.push(EarlierPose {
+                frame: w.frame,
+                t: w.t,
+                relative: k.relative_of(&track.pose_cw),
+                kf: k.id,
+            });
+        }
+        tracing::debug!(
+            "map {id}: {} of the {} frames the initializer waited on are posed in it",
+            poses.len(),
+            waited.len() + 1
+        );
+        self.waited_poses = Some((id, poses));
+    }
+
+    /// The waited frames' poses stand once their map is confirmed: a frame after its first
+    /// was tracked (in it, or in the map it was merged into).
+    pub(super) fn release_waited_poses(&mut self, m: &Measurement) {
+        if self.waited_poses.is_some() && self.founded.is_none_or(|(_, t0)| m.t > t0) {
+            let (_, poses) = self.waited_poses.take().expect("checked above");
+            self.earlier_poses.extend(poses);
+        }
     }
 }

@@ -48,6 +48,18 @@ pub struct StepOutput {
     /// Pools revoked on this step: the frames tracked across their seams are re-anchored with
     /// them (`Revocation::reanchor`).
     pub revocations: Vec<crate::atlas::Revocation>,
+    /// Earlier frames posed on this step: monocular frames that came while the initializer
+    /// waited for a pair, posed in the map that pair started.
+    pub earlier: Vec<EarlierPose>,
+}
+
+/// The pose of an earlier frame, relative to its keyframe as [`StepOutput::pose`].
+#[derive(Debug, Clone)]
+pub struct EarlierPose {
+    pub frame: usize,
+    pub t: f64,
+    pub relative: Isometry3<f64>,
+    pub kf: KfId,
 }
 
 /// A transition as states.csv records it.
@@ -162,6 +174,11 @@ pub struct StateMachine {
     /// most often comes back to, and a pending hypothesis there is re-checked by projection
     /// (see `recheck_open_hypothesis`).
     lost_places: BTreeSet<KfId>,
+    /// Monocular: poses of the frames the initializer waited on, found when their map
+    /// started; held until the map is confirmed (a map discarded as a false start takes
+    /// them with it), then handed out with the step ([`StepOutput::earlier`]).
+    waited_poses: Option<(MapId, Vec<EarlierPose>)>,
+    earlier_poses: Vec<EarlierPose>,
     /// A frame Idle re-tracked in the current map, for the entered state's Mapping region
     /// (see `map_retracked`); and the frame's pose when that made it a keyframe.
     retracked: Option<crate::components::tracker::TrackResult>,
@@ -245,6 +262,8 @@ impl StateMachine {
             resume: None,
             lost_place: None,
             lost_places: BTreeSet::new(),
+            waited_poses: None,
+            earlier_poses: Vec::new(),
             entry_pose: None,
             pending_obs: None,
             keyframe_made: false,
@@ -348,6 +367,7 @@ impl StateMachine {
             flags: self.flags,
             pose,
             revocations: std::mem::take(&mut self.revocations),
+            earlier: std::mem::take(&mut self.earlier_poses),
         }
     }
 
@@ -431,6 +451,7 @@ impl StateMachine {
             flags: self.flags,
             pose: None,
             revocations: Vec::new(),
+            earlier: Vec::new(),
         }
     }
 }

@@ -263,3 +263,56 @@ fn a_monocular_turn_in_place_is_tracked_by_its_rotation() {
         .sqrt();
     assert!(rms <= 1.0, "rotation error over the turn {rms:.2} deg RMS");
 }
+
+/// Initialisation that waits without losing frames (#67): the two-view initializer starts the
+/// small `desk`'s map a dozen frames after its first view. The frames it waited on (its
+/// reference, the map's first keyframe, and those up to the second) are tracked in the new
+/// map once it starts, so every frame from the first is posed, in that map, and they are as
+/// accurate as the rest. Before, the frames before the second keyframe had no pose.
+#[test]
+fn the_frames_the_initializer_waited_on_are_posed_in_its_map() {
+    let run = common::run_small(
+        "desk",
+        PerturbationSpec {
+            mono: true,
+            ..Default::default()
+        },
+    );
+    let states = std::fs::read_to_string(run.out.join("states.csv")).unwrap();
+    let rows: Vec<Vec<String>> = states
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').map(str::to_string).collect())
+        .collect();
+    let init_frame: usize = rows
+        .iter()
+        .find(|r| r[2] == "Idle" && r[3] == "Init" && r[4] == "initialized")
+        .map(|r| r[0].parse().unwrap())
+        .expect("the monocular initializer never reported initialized");
+    assert!(
+        init_frame >= 5,
+        "initialised at frame {init_frame}: nothing waited on"
+    );
+    let first_map = rows
+        .iter()
+        .find(|r| r[0] == init_frame.to_string())
+        .unwrap()[9]
+        .clone();
+    // states.csv names each frame's map from its pose: every frame before the second
+    // keyframe has one, in the map the pair started.
+    for f in 0..init_frame {
+        let row = rows.iter().find(|r| r[0] == f.to_string()).unwrap();
+        assert_eq!(
+            row[9], first_map,
+            "frame {f} (before initialisation) has no pose in map {first_map}"
+        );
+    }
+    assert_eq!(
+        run.summary.frames_with_pose, run.summary.frames,
+        "every frame is posed"
+    );
+    // Accurate: the Sim3 ATE over all frames, waited ones included.
+    let ev = run.summary.evaluation.as_ref().unwrap();
+    let ate = ev["ate"]["stats"]["rmse"].as_f64().unwrap();
+    assert!(ate < 0.04, "Sim3 ATE {ate} m");
+}
