@@ -14,9 +14,7 @@
 
 use crate::components::aligner::backproject;
 use crate::components::map_merger::bundle_adjust;
-use crate::components::preprocess::{
-    ImageGeometry, Measurement, dominant_rotation_bins, nearest_descriptor, rotation_bin,
-};
+use crate::components::preprocess::{ImageGeometry, Measurement, match_in_areas};
 use crate::components::two_view::{TwoViewParams, initialize_two_view};
 use crate::map::{KfId, Map};
 use crate::optim::{BaParams, Intrinsics};
@@ -288,41 +286,13 @@ impl Initializer {
 /// reference match; matches whose orientation change disagrees with the dominant ones
 /// (rotation histogram) are dropped. Sorted by reference keypoint: deterministic.
 fn match_to_reference(r: &Measurement, m: &Measurement) -> Matches {
-    // Current keypoint → (distance, reference keypoint).
-    let mut best: Vec<Option<(u32, usize)>> = vec![None; m.len()];
-    for (a, ka) in r.keypoints.iter().enumerate() {
-        let lo = ka.octave.saturating_sub(1);
-        let hi = ka.octave.saturating_add(1);
-        let near = m.grid.in_area(
-            &m.keypoints,
-            ka.un.x,
-            ka.un.y,
-            MONO_SEARCH_RADIUS_PX,
-            lo,
-            hi,
-        );
-        let Some((bi, b1)) = nearest_descriptor(
-            &r.descriptors[a],
-            near.into_iter().map(|b| (b, &m.descriptors[b])),
-            MONO_MAX_DISTANCE,
-            MONO_MATCH_RATIO,
-        ) else {
-            continue;
-        };
-        if best[bi].is_none_or(|(d, _)| b1 < d) {
-            best[bi] = Some((b1, a));
-        }
-    }
-    let mut matches: Matches = best
-        .iter()
-        .enumerate()
-        .filter_map(|(b, x)| x.map(|(_, a)| (a, b)))
-        .collect();
+    let mut matches = match_in_areas(
+        r,
+        m,
+        |a| Some((r.keypoints[a].un, MONO_SEARCH_RADIUS_PX)),
+        MONO_MAX_DISTANCE,
+        MONO_MATCH_RATIO,
+    );
     matches.sort_unstable();
-    // Rotation consistency: keep the three dominant bins (those with at least a tenth of the
-    // largest bin's votes).
-    let bin = |&(a, b): &(usize, usize)| rotation_bin(r.keypoints[a].angle, m.keypoints[b].angle);
-    let keep = dominant_rotation_bins(matches.iter().map(bin));
-    matches.retain(|x| keep.contains(&bin(x)));
     matches
 }

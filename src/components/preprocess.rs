@@ -50,6 +50,53 @@ pub fn hamming(a: &Descriptor, b: &Descriptor) -> u32 {
     d
 }
 
+/// Matches between two views by searching, for each key point `i` of `a`, the key points of `b`
+/// within a radius of a pixel (`area(i)`: where and how far; `None` skips it) at a pyramid level
+/// within one of `i`'s, by descriptor ([`nearest_descriptor`]). A key point of `b` keeps only
+/// its nearest match, and matches whose change of orientation disagrees with the dominant ones
+/// are dropped ([`dominant_rotation_bins`], as ORB-SLAM). Pairs `(i in a, j in b)`, by `j`.
+pub fn match_in_areas(
+    a: &Measurement,
+    b: &Measurement,
+    area: impl Fn(usize) -> Option<(Vector2<f64>, f64)>,
+    max_distance: u32,
+    ratio: f64,
+) -> Vec<(usize, usize)> {
+    // Key point of `b` → (distance, key point of `a`).
+    let mut best: Vec<Option<(u32, usize)>> = vec![None; b.len()];
+    for (i, ka) in a.keypoints.iter().enumerate() {
+        let Some((p, r)) = area(i) else { continue };
+        let near = b.grid.in_area(
+            &b.keypoints,
+            p.x,
+            p.y,
+            r,
+            ka.octave.saturating_sub(1),
+            ka.octave.saturating_add(1),
+        );
+        let Some((j, d)) = nearest_descriptor(
+            &a.descriptors[i],
+            near.into_iter().map(|j| (j, &b.descriptors[j])),
+            max_distance,
+            ratio,
+        ) else {
+            continue;
+        };
+        if best[j].is_none_or(|(d0, _)| d < d0) {
+            best[j] = Some((d, i));
+        }
+    }
+    let mut pairs: Vec<(usize, usize)> = best
+        .iter()
+        .enumerate()
+        .filter_map(|(j, x)| x.map(|(_, i)| (i, j)))
+        .collect();
+    let bin = |&(i, j): &(usize, usize)| rotation_bin(a.keypoints[i].angle, b.keypoints[j].angle);
+    let keep = dominant_rotation_bins(pairs.iter().map(bin));
+    pairs.retain(|x| keep.contains(&bin(x)));
+    pairs
+}
+
 /// Bins of the rotation-consistency histogram (ORB-SLAM: 30 bins of 12°).
 pub const ROTATION_BINS: usize = 30;
 

@@ -17,9 +17,7 @@
 //! that translates shows it as matches the rotation cannot explain: the inlier fraction is
 //! reported, and the tracker refuses a rotation that explains too few of them.
 
-use crate::components::preprocess::{
-    ImageGeometry, Measurement, dominant_rotation_bins, nearest_descriptor, rotation_bin,
-};
+use crate::components::preprocess::{ImageGeometry, Measurement, match_in_areas};
 use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector2, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -96,47 +94,24 @@ pub fn estimate(
     radius_px: f64,
     min_inliers: usize,
 ) -> Option<RotationEstimate> {
-    // Current key point → (distance, anchor key point).
-    let mut best: Vec<Option<(u32, usize)>> = vec![None; m.len()];
     let anchor_bearings: Vec<Vector3<f64>> = anchor
         .keypoints
         .iter()
         .map(|k| bearing(geo, &k.un))
         .collect();
-    for (a, ka) in anchor.keypoints.iter().enumerate() {
-        let Some(p) = project(geo, &(predicted * anchor_bearings[a])) else {
-            continue;
-        };
-        let r = radius_px * geo.scales[ka.octave as usize];
-        let near = m.grid.in_area(
-            &m.keypoints,
-            p.x,
-            p.y,
-            r,
-            ka.octave.saturating_sub(1),
-            ka.octave.saturating_add(1),
-        );
-        let Some((b, d)) = nearest_descriptor(
-            &anchor.descriptors[a],
-            near.into_iter().map(|b| (b, &m.descriptors[b])),
-            MAX_DISTANCE,
-            RATIO,
-        ) else {
-            continue;
-        };
-        if best[b].is_none_or(|(d0, _)| d < d0) {
-            best[b] = Some((d, a));
-        }
-    }
-    let mut pairs: Vec<(usize, usize)> = best
-        .iter()
-        .enumerate()
-        .filter_map(|(b, x)| x.map(|(_, a)| (a, b)))
-        .collect();
-    let bin =
-        |&(a, b): &(usize, usize)| rotation_bin(anchor.keypoints[a].angle, m.keypoints[b].angle);
-    let keep = dominant_rotation_bins(pairs.iter().map(bin));
-    pairs.retain(|x| keep.contains(&bin(x)));
+    let pairs = match_in_areas(
+        anchor,
+        m,
+        |a| {
+            let p = project(geo, &(predicted * anchor_bearings[a]))?;
+            Some((
+                p,
+                radius_px * geo.scales[anchor.keypoints[a].octave as usize],
+            ))
+        },
+        MAX_DISTANCE,
+        RATIO,
+    );
     if pairs.len() < min_inliers.max(2) {
         return None;
     }
