@@ -5,7 +5,7 @@
 use crate::atlas::Atlas;
 use crate::components::aligner::backproject;
 use crate::components::preprocess::{
-    ImageGeometry, Measurement, dominant_rotation_bins, hamming, rotation_bin,
+    ImageGeometry, Measurement, hamming, rotation_consistent_pairs,
 };
 use crate::components::tracker::TrackResult;
 use crate::components::two_view::{k_matrix, projection_matrix, triangulate};
@@ -917,16 +917,8 @@ fn match_for_triangulation(
             best[bi] = Some((b1, i1));
         }
     }
-    let mut pairs: Vec<(usize, usize)> = best
-        .iter()
-        .enumerate()
-        .filter_map(|(i2, x)| x.map(|(_, i1)| (i1, i2)))
-        .collect();
+    let mut pairs = rotation_consistent_pairs(&best, &k1.keypoints, &k2.keypoints);
     pairs.sort_unstable();
-    let bin =
-        |&(i1, i2): &(usize, usize)| rotation_bin(k1.keypoints[i1].angle, k2.keypoints[i2].angle);
-    let keep = dominant_rotation_bins(pairs.iter().map(bin));
-    pairs.retain(|x| keep.contains(&bin(x)));
     pairs
 }
 

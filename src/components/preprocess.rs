@@ -86,12 +86,23 @@ pub fn match_in_areas(
             best[j] = Some((d, i));
         }
     }
+    rotation_consistent_pairs(&best, &a.keypoints, &b.keypoints)
+}
+
+/// The pairs `(i in a, j in b)` of `best` (per key point `j` of `b`: its match's distance and
+/// key point `i` of `a`), by `j`, without those whose change of orientation disagrees with the
+/// dominant ones ([`dominant_rotation_bins`], as ORB-SLAM).
+pub fn rotation_consistent_pairs(
+    best: &[Option<(u32, usize)>],
+    a: &[Keypoint],
+    b: &[Keypoint],
+) -> Vec<(usize, usize)> {
     let mut pairs: Vec<(usize, usize)> = best
         .iter()
         .enumerate()
         .filter_map(|(j, x)| x.map(|(_, i)| (i, j)))
         .collect();
-    let bin = |&(i, j): &(usize, usize)| rotation_bin(a.keypoints[i].angle, b.keypoints[j].angle);
+    let bin = |&(i, j): &(usize, usize)| rotation_bin(a[i].angle, b[j].angle);
     let keep = dominant_rotation_bins(pairs.iter().map(bin));
     pairs.retain(|x| keep.contains(&bin(x)));
     pairs

@@ -17,6 +17,7 @@
 //! that translates shows it as matches the rotation cannot explain: the inlier fraction is
 //! reported, and the tracker refuses a rotation that explains too few of them.
 
+use crate::components::aligner::backproject;
 use crate::components::preprocess::{ImageGeometry, Measurement, match_in_areas};
 use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector2, Vector3};
 use rand::{Rng, SeedableRng};
@@ -54,17 +55,12 @@ impl RotationEstimate {
 
 /// Unit bearing of an undistorted pixel.
 fn bearing(geo: &ImageGeometry, un: &Vector2<f64>) -> Vector3<f64> {
-    let k = &geo.intr;
-    Vector3::new((un.x - k.cx) / k.fx, (un.y - k.cy) / k.fy, 1.0).normalize()
+    backproject(&geo.intr, un, 1.0).normalize()
 }
 
 /// The pixel of a camera-frame direction, if it is in front of the camera and in the image.
 fn project(geo: &ImageGeometry, d: &Vector3<f64>) -> Option<Vector2<f64>> {
-    if d.z <= 1e-6 {
-        return None;
-    }
-    let k = &geo.intr;
-    let p = Vector2::new(k.fx * d.x / d.z + k.cx, k.fy * d.y / d.z + k.cy);
+    let p = geo.intr.project(d)?;
     (p.x >= 0.0 && p.y >= 0.0 && p.x < geo.width && p.y < geo.height).then_some(p)
 }
 
@@ -124,13 +120,9 @@ pub fn estimate(
     let bb: Vec<Vector3<f64>> = b.iter().map(|u| bearing(geo, u)).collect();
     // χ² of each pair under a rotation (∞ behind the camera).
     let chi2 = |r: &Rotation3<f64>, i: usize| -> f64 {
-        let d = r * a[i];
-        if d.z <= 1e-6 {
-            return f64::INFINITY;
-        }
-        let k = &geo.intr;
-        let p = Vector2::new(k.fx * d.x / d.z + k.cx, k.fy * d.y / d.z + k.cy);
-        (p - b[i]).norm_squared() / sigma2[i]
+        geo.intr
+            .project(&(r * a[i]))
+            .map_or(f64::INFINITY, |p| (p - b[i]).norm_squared() / sigma2[i])
     };
     let inliers_of = |r: &Rotation3<f64>| -> Vec<usize> {
         (0..a.len()).filter(|&i| chi2(r, i) <= CHI2_2DOF).collect()

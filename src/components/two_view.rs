@@ -772,32 +772,28 @@ pub fn initialize_two_view(
         ModelKind::Homography => ((kind, h), (ModelKind::Fundamental, f)),
         ModelKind::Fundamental => ((kind, f), (ModelKind::Homography, h)),
     };
-    let first = reconstruct(chosen.0, chosen.1, x1, x2, k, params, rej);
+    let scores = (sh, sf);
+    let first = reconstruct(chosen.0, chosen.1, x1, x2, k, params, scores, rej);
     // The selected model's motion hypotheses may tie where the other model's do not: at a
     // few degrees of parallax a 3-D scene is still fitted by `H` within σ (R_H just above the
     // threshold), and the eight solutions of `H` then explain the points about equally well.
     // `F` decomposes into four, of which only one puts the points in front of both cameras.
-    let mut out = match first {
+    match first {
         Err(r) if params.try_other_model && r.reason == RejectReason::Ambiguous => {
             let strict = TwoViewParams {
                 min_parallax_deg: params.min_parallax_deg * OTHER_MODEL_PARALLAX_FACTOR,
                 ..*params
             };
-            reconstruct(other.0, other.1, x1, x2, k, &strict, rej).map_err(|_| r)
+            reconstruct(other.0, other.1, x1, x2, k, &strict, scores, rej).map_err(|_| r)
         }
         x => x,
-    };
-    if let Ok(rec) = out.as_mut() {
-        rec.r_h = r_h;
-        rec.score_h = sh;
-        rec.score_f = sf;
     }
-    out
 }
 
 /// The reconstruction from one fitted model: decomposition into motion hypotheses, the
-/// triangulation check of each, and the acceptance of a clear winner. `rej` carries what was
-/// measured before (`R_H`).
+/// triangulation check of each, and the acceptance of a clear winner. `scores` are the
+/// selection's `(S_H, S_F)`; `rej` carries what was measured before (`R_H`).
+#[allow(clippy::too_many_arguments)]
 fn reconstruct(
     kind: ModelKind,
     chosen: Option<ScoredModel>,
@@ -805,6 +801,7 @@ fn reconstruct(
     x2: &[Vector2<f64>],
     k: &Intrinsics,
     params: &TwoViewParams,
+    (score_h, score_f): (f64, f64),
     mut rej: TwoViewRejection,
 ) -> Result<TwoViewReconstruction, TwoViewRejection> {
     rej.model = Some(kind);
@@ -886,8 +883,8 @@ fn reconstruct(
         model: kind,
         matrix: model.matrix,
         r_h: rej.r_h,
-        score_h: 0.0,
-        score_f: 0.0,
+        score_h,
+        score_f,
         rotation: Rotation3::from_matrix(&r),
         translation: t,
         points: bc.points.clone(),
