@@ -45,7 +45,8 @@ pub enum Command {
 
 #[derive(Debug, Args)]
 pub struct SynthArgs {
-    /// desk, loop, aliasing, revisit, case-study or turn-in-place.
+    /// desk, loop, aliasing, revisit, case-study, turn-in-place or turn-in-place-reference
+    /// (the same walk without the full turns).
     #[arg(long)]
     pub scenario: String,
     #[arg(long)]

@@ -45,13 +45,14 @@ pub struct Scenario {
 }
 
 /// CLI names of all scenarios.
-pub const NAMES: [&str; 6] = [
+pub const NAMES: [&str; 7] = [
     "desk",
     "loop",
     "aliasing",
     "revisit",
     "case-study",
     "turn-in-place",
+    "turn-in-place-reference",
 ];
 
 /// Builds a scenario by CLI name.
@@ -62,7 +63,8 @@ pub fn build(name: &str, seed: u64) -> Option<Scenario> {
         "aliasing" => Some(aliasing(seed)),
         "revisit" => Some(revisit(seed)),
         "case-study" => Some(case_study(seed)),
-        "turn-in-place" => Some(turn_in_place(seed)),
+        "turn-in-place" => Some(turn_in_place(seed, true)),
+        "turn-in-place-reference" => Some(turn_in_place(seed, false)),
         _ => None,
     }
 }
@@ -399,7 +401,11 @@ pub fn aliasing(seed: u64) -> Scenario {
 /// `turn-in-place`: a walk through one furnished room with two full turns on the spot, at 60
 /// and 100 °/s, and 2 s standing still. Without depth a turn in place gives no parallax: no
 /// point can be triangulated while it lasts (monocular tracking must hold on by rotation).
-pub fn turn_in_place(seed: u64) -> Scenario {
+///
+/// With `turns` false, `turn-in-place-reference`: the same walk without the two full turns
+/// (same room, waypoints, stand and jitter seed), the reference an ATE with the turns is
+/// compared with.
+pub fn turn_in_place(seed: u64, turns: bool) -> Scenario {
     let mut sc = Scene::default();
     // The room of `desk`: from anywhere on the path every wall is within the depth sensor's
     // 4 m, so RGB-D runs see the turns with depth while monocular runs have only the images.
@@ -408,14 +414,22 @@ pub fn turn_in_place(seed: u64) -> Scenario {
     r.speed = 0.6;
     r.turn_rate = 45f64.to_radians();
     r.mark("start").wait(1.0).mark("walk");
-    r.go(2.5, 2.0).turn_to(60.0).mark("turn at 60");
-    r.turn_rate = 60f64.to_radians();
-    r.turn_by(360.0).mark("walk on");
-    r.turn_rate = 45f64.to_radians();
-    r.go(3.3, 2.4).turn_to(-30.0).mark("turn at 100");
-    r.turn_rate = 100f64.to_radians();
-    r.turn_by(-360.0).mark("walk on again");
-    r.turn_rate = 45f64.to_radians();
+    r.go(2.5, 2.0).turn_to(60.0);
+    if turns {
+        r.mark("turn at 60");
+        r.turn_rate = 60f64.to_radians();
+        r.turn_by(360.0);
+        r.turn_rate = 45f64.to_radians();
+    }
+    r.mark("walk on");
+    r.go(3.3, 2.4).turn_to(-30.0);
+    if turns {
+        r.mark("turn at 100");
+        r.turn_rate = 100f64.to_radians();
+        r.turn_by(-360.0);
+        r.turn_rate = 45f64.to_radians();
+    }
+    r.mark("walk on again");
     r.go(2.6, 1.5).turn_to(150.0).mark("stand still");
     r.wait(2.0).mark("walk to the end");
     r.go(1.7, 2.1).wait(0.5);
@@ -445,19 +459,31 @@ pub fn turn_in_place(seed: u64) -> Scenario {
             &["Mapping", "Localized"],
         ),
     ];
+    let defs: Vec<_> = defs
+        .iter()
+        .filter(|d| turns || !d.0.starts_with("turn at"))
+        .copied()
+        .collect();
+    let name = if turns {
+        "turn-in-place"
+    } else {
+        "turn-in-place-reference"
+    };
     let session = Session {
         dir: None,
-        name: s("turn-in-place"),
+        name: s(name),
         legs: vec![r.path(Jitter::new(mix(seed ^ 0x905), 0.005, 0.005, false))],
-        steps: steps(&r.marks, defs, 0),
+        steps: steps(&r.marks, &defs, 0),
         dark: vec![],
         stamp0: STAMP0,
     };
     Scenario {
-        name: s("turn-in-place"),
-        description: s(
-            "One furnished room; a walk with two full turns on the spot (60 and 100 °/s) and 2 s standing still.",
-        ),
+        name: s(name),
+        description: s(if turns {
+            "One furnished room; a walk with two full turns on the spot (60 and 100 °/s) and 2 s standing still."
+        } else {
+            "The walk of turn-in-place without its two full turns: the reference for its ATE."
+        }),
         motion: s("hand-held (walking, 1.35 m)"),
         scene: sc,
         sessions: vec![session],

@@ -420,3 +420,46 @@ fn bad_cli_input_is_an_error_not_a_panic() {
         run(parse(&["contact-sheet", out, "--every", "0", "--out", "x.png"]).unwrap()).is_err()
     );
 }
+
+/// `turn-in-place-reference` is the walk of `turn-in-place` without its two full turns: the
+/// same start, the same end, no turn faster than the walk's (45 °/s), and shorter by the turns'
+/// duration (one full circle at up to 60 °/s and one at up to 100 °/s: more than 9 s).
+#[test]
+fn the_reference_walk_is_turn_in_place_without_its_full_turns() {
+    let plan = |name: &str| {
+        let sc = scenarios::build(name, 1).unwrap();
+        plan_frames(&sc.sessions[0], 1, &SensorOptions::realistic(), 1)
+    };
+    let (with, without) = (plan("turn-in-place"), plan("turn-in-place-reference"));
+    let max_rate = |frames: &[homing_datasets::writer::FramePlan]| {
+        frames
+            .windows(11)
+            .map(|w| {
+                // Over a third of a second: the hand-held jitter averages out.
+                let d = w[0].pose.rotation.inverse() * w[10].pose.rotation;
+                d.angle().to_degrees() / (w[10].t - w[0].t)
+            })
+            .fold(0.0, f64::max)
+    };
+    // The 100 °/s turn reaches 73 °/s over a third of a second; the walk's turns towards its
+    // waypoints 47 °/s.
+    assert!(max_rate(&with) > 65.0, "{}", max_rate(&with));
+    assert!(max_rate(&without) < 50.0, "{}", max_rate(&without));
+    let duration = |f: &[homing_datasets::writer::FramePlan]| f.last().unwrap().t - f[0].t;
+    assert!(duration(&with) - duration(&without) > 9.0);
+    for (a, b) in [
+        (with.first(), without.first()),
+        (with.last(), without.last()),
+    ] {
+        let (a, b) = (a.unwrap(), b.unwrap());
+        assert!((a.pose.translation.vector - b.pose.translation.vector).norm() < 0.05);
+    }
+    let names: Vec<_> = scenarios::build("turn-in-place-reference", 1)
+        .unwrap()
+        .sessions[0]
+        .steps
+        .iter()
+        .map(|s| s.name.clone())
+        .collect();
+    assert!(!names.iter().any(|n| n.starts_with("turn at")), "{names:?}");
+}
