@@ -20,14 +20,18 @@ use std::collections::{BTreeMap, BTreeSet};
 /// Monocular keyframe decision: a frame tracking fewer than this share of its reference
 /// keyframe's points becomes a keyframe (ORB-SLAM's monocular `thRefRatio`).
 const MONO_KEYFRAME_TRACKED_RATIO: f64 = 0.9;
-/// Monocular keyframe decision: below this share of the reference keyframe's points the frame
-/// becomes a keyframe whatever its baseline (the view is leaving the map, e.g. a turn in place).
+/// Monocular keyframe decision: below this share of the reference keyframe's points the view
+/// is leaving the map, and the frame becomes a keyframe whatever its baseline, unless the last
+/// keyframe triangulated nothing (then `MONO_MIN_BASELINE`).
 const MONO_KEYFRAME_LOST_RATIO: f64 = 0.5;
 /// Monocular keyframe decision: least baseline to the reference keyframe, per unit of its
 /// median scene depth, before tracking fewer points makes a keyframe: twice the smallest
 /// triangulation parallax (`MAX_COS_PARALLAX`, 0.02 rad), so points up to twice the median
 /// depth can be triangulated against the reference.
 const MONO_KEYFRAME_BASELINE: f64 = 0.04;
+/// Monocular: a baseline below this share of the median scene depth triangulates nothing
+/// (ORB-SLAM's 1 %, `create_new_points`).
+const MONO_MIN_BASELINE: f64 = 0.01;
 /// Monocular triangulation: covisible keyframes paired with a new keyframe (ORB-SLAM: 20).
 const TRIANGULATION_NEIGHBOURS: usize = 20;
 /// RGB-D triangulation: covisible keyframes paired with a new keyframe (ORB-SLAM2: 10).
@@ -47,6 +51,8 @@ pub struct MapMerger {
     cfg: MappingConfig,
     geo: ImageGeometry,
     last_kf_frame: Option<usize>,
+    /// Monocular: the last keyframe triangulated no point (see `need_keyframe`).
+    last_kf_barren: bool,
     /// Points created recently, checked by culling: (point, keyframe that created it).
     recent: Vec<(PointId, KfId)>,
     /// Threaded mode: local BA runs on this worker (ORB-SLAM's local-mapping thread) while
@@ -161,6 +167,7 @@ impl MapMerger {
             cfg: cfg.clone(),
             geo,
             last_kf_frame: None,
+            last_kf_barren: false,
             recent: Vec::new(),
             worker: None,
             waited_ms: Vec::new(),
@@ -231,6 +238,7 @@ impl MapMerger {
     /// A new map started at keyframe `kf` of frame `frame`.
     pub fn started(&mut self, frame: usize) {
         self.last_kf_frame = Some(frame);
+        self.last_kf_barren = false;
         self.recent.clear();
     }
 
@@ -299,19 +307,28 @@ impl MapMerger {
             0
         };
         let mut weak = (track.n_inliers as f64) < ratio * ref_matches as f64 || need_close;
-        if self.mono
-            && weak
-            && (track.n_inliers as f64) >= MONO_KEYFRAME_LOST_RATIO * ref_matches as f64
-        {
+        let leaving = (track.n_inliers as f64) < MONO_KEYFRAME_LOST_RATIO * ref_matches as f64;
+        if self.mono && weak && (!leaving || self.last_kf_barren) {
+            let need = if leaving {
+                MONO_MIN_BASELINE
+            } else {
+                MONO_KEYFRAME_BASELINE
+            };
             // A monocular keyframe exists to triangulate points: not before its baseline to
             // the reference keyframe gives the points up to twice the scene's median depth
             // the parallax triangulation needs (ORB-SLAM gets the same spacing from its
             // local-mapping thread being busy; here mapping finishes before the next frame, and
             // a keyframe every frame made a map of 1 %-baseline pairs that drifted by 30 cm on
-            // fr1_desk).
+            // fr1_desk). When the view is leaving the map, a keyframe comes at once: the
+            // older keyframes it is paired with may be far enough (on the small `desk`, such
+            // keyframes triangulate 8–40 points each and carry tracking through a sparse
+            // stretch). But once one of them triangulated nothing, the next needs the least
+            // baseline triangulation uses: in a slow turn in place on `turn-in-place`, a
+            // keyframe per frame for 24 frames with 0 new points, then a 1938-point fusion
+            // and a loop pool accepted 1 m off (decision 0029).
             let center = track.pose_cw.inverse().translation.vector;
             if let Some(median) = median_depth(map, ref_kf) {
-                weak = (center - ref_kf.center()).norm() >= MONO_KEYFRAME_BASELINE * median;
+                weak = (center - ref_kf.center()).norm() >= need * median;
             }
         }
         (since >= self.cfg.keyframe_max_interval as usize || weak) && track.n_inliers > 15
@@ -372,6 +389,7 @@ impl MapMerger {
         map.update_covisibility(kf);
         self.local_ba(map, kf, &mut report);
         self.last_kf_frame = Some(m.frame);
+        self.last_kf_barren = self.mono && report.new_points == 0;
         report
     }
 
@@ -429,7 +447,7 @@ impl MapMerger {
                 let Some(median) = median_depth(map, k2) else {
                     continue;
                 };
-                if (o1 - o2).norm() / median < 0.01 {
+                if (o1 - o2).norm() / median < MONO_MIN_BASELINE {
                     continue;
                 }
             } else if (o1 - o2).norm() < intr.bf / intr.fx {
@@ -1242,22 +1260,44 @@ mod tests {
 
     /// Monocular keyframes come when the frame tracks clearly fewer of the reference's points
     /// *and* has the baseline to triangulate new ones (4 % of the median depth: 8 cm at 2 m),
-    /// or when it tracks fewer than half of them whatever the baseline.
+    /// or when it tracks fewer than half of them whatever the baseline, unless the last
+    /// keyframe triangulated nothing: then the least baseline triangulation uses (1 %: 2 cm
+    /// at 2 m) is needed (decision 0029).
     #[test]
     fn a_monocular_keyframe_needs_a_baseline_unless_the_view_is_leaving_the_map() {
-        let (merger, map, reference, m) = mono_wall();
-        let need = |inliers, x| {
+        let (mut merger, map, reference, m) = mono_wall();
+        let need = |merger: &MapMerger, inliers, x| {
             merger.need_keyframe(&map, &m, &tracked(&map, reference, inliers, x), true)
         };
         // 200 of 300 tracked (below 90 %): 1 cm away is too close, 10 cm is enough.
-        assert!(!need(200, 0.01), "a keyframe 1 cm from its reference");
-        assert!(need(200, 0.10), "no keyframe 10 cm from the reference");
+        assert!(
+            !need(&merger, 200, 0.01),
+            "a keyframe 1 cm from its reference"
+        );
+        assert!(
+            need(&merger, 200, 0.10),
+            "no keyframe 10 cm from the reference"
+        );
         // 120 of 300 (below half): the view is leaving the map; a keyframe at once.
-        assert!(need(120, 0.01), "no keyframe while losing the map");
+        assert!(
+            need(&merger, 120, 0.005),
+            "no keyframe while losing the map"
+        );
         // 285 of 300 (above 90 %): no keyframe wherever it is.
         assert!(
-            !need(285, 0.10),
+            !need(&merger, 285, 0.10),
             "a keyframe that tracks nearly all the reference's points"
+        );
+        // After a keyframe that triangulated nothing, leaving the map needs 1 %: 3 cm is
+        // enough, 5 mm is not.
+        merger.last_kf_barren = true;
+        assert!(
+            !need(&merger, 120, 0.005),
+            "a keyframe without baseline after a barren one"
+        );
+        assert!(
+            need(&merger, 120, 0.03),
+            "no keyframe 3 cm away after a barren one"
         );
     }
 }
