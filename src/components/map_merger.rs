@@ -1266,38 +1266,28 @@ mod tests {
     #[test]
     fn a_monocular_keyframe_needs_a_baseline_unless_the_view_is_leaving_the_map() {
         let (mut merger, map, reference, m) = mono_wall();
-        let need = |merger: &MapMerger, inliers, x| {
-            merger.need_keyframe(&map, &m, &tracked(&map, reference, inliers, x), true)
-        };
-        // 200 of 300 tracked (below 90 %): 1 cm away is too close, 10 cm is enough.
-        assert!(
-            !need(&merger, 200, 0.01),
-            "a keyframe 1 cm from its reference"
-        );
-        assert!(
-            need(&merger, 200, 0.10),
-            "no keyframe 10 cm from the reference"
-        );
-        // 120 of 300 (below half): the view is leaving the map; a keyframe at once.
-        assert!(
-            need(&merger, 120, 0.005),
-            "no keyframe while losing the map"
-        );
-        // 285 of 300 (above 90 %): no keyframe wherever it is.
-        assert!(
-            !need(&merger, 285, 0.10),
-            "a keyframe that tracks nearly all the reference's points"
-        );
-        // After a keyframe that triangulated nothing, leaving the map needs 1 %: 3 cm is
-        // enough, 5 mm is not.
-        merger.last_kf_barren = true;
-        assert!(
-            !need(&merger, 120, 0.005),
-            "a keyframe without baseline after a barren one"
-        );
-        assert!(
-            need(&merger, 120, 0.03),
-            "no keyframe 3 cm away after a barren one"
-        );
+        // (last keyframe barren, points tracked of 300, metres from the reference, keyframe?)
+        let cases = [
+            // Below 90 % tracked: 1 cm away is too close, 10 cm is enough.
+            (false, 200, 0.01, false),
+            (false, 200, 0.10, true),
+            // Below half: the view is leaving the map; a keyframe at once.
+            (false, 120, 0.005, true),
+            // Above 90 %: no keyframe wherever it is.
+            (false, 285, 0.10, false),
+            // After a keyframe that triangulated nothing, leaving the map needs 1 %: 3 cm is
+            // enough, 5 mm is not.
+            (true, 120, 0.005, false),
+            (true, 120, 0.03, true),
+        ];
+        for (barren, inliers, x, expected) in cases {
+            merger.last_kf_barren = barren;
+            let track = tracked(&map, reference, inliers, x);
+            assert_eq!(
+                merger.need_keyframe(&map, &m, &track, true),
+                expected,
+                "last keyframe barren {barren}, {inliers} of 300 tracked, {x} m away"
+            );
+        }
     }
 }
