@@ -335,10 +335,7 @@ impl Tracker {
         {
             let d = pose * predicted.inverse();
             let (metres, degrees) = (d.translation.vector.norm(), d.rotation.angle().to_degrees());
-            // The tolerances are for one interval at 30 Hz; lower frame rates move more
-            // between frames, and a camera deviates more from the prediction over several
-            // intervals (by √n: see `MAX_JUDGED_INTERVALS`).
-            let r = (self.velocity_dt * 30.0).max(1.0) * (n as f64).sqrt();
+            let r = self.jump_scale(n);
             if metres > r * self.cfg.max_jump_m || degrees > r * self.cfg.max_jump_deg {
                 tracing::debug!(
                     "frame {}: tracked {metres:.3} m / {degrees:.1} deg off the motion model: refused as a false measurement",
@@ -377,6 +374,14 @@ impl Tracker {
             twist: self.twist,
             mean_chi2,
         }
+    }
+
+    /// The jump tolerances' (`max_jump_m`, `max_jump_deg`) factor for a prediction over `n`
+    /// intervals: they are for one interval at 30 Hz, lower frame rates move more between
+    /// frames, and a camera deviates more from the prediction over several intervals (by √n:
+    /// see `MAX_JUDGED_INTERVALS`).
+    fn jump_scale(&self, n: usize) -> f64 {
+        (self.velocity_dt * 30.0).max(1.0) * (n as f64).sqrt()
     }
 
     /// The frame at `t` was tracked at `pose`: the motion model follows.
@@ -460,8 +465,7 @@ impl Tracker {
         let off = (pose.rotation * predicted.rotation.inverse())
             .angle()
             .to_degrees();
-        let r = (self.velocity_dt * 30.0).max(1.0);
-        if off > r * self.cfg.max_jump_deg {
+        if off > self.jump_scale(1) * self.cfg.max_jump_deg {
             tracing::debug!(
                 "frame {}: rotation-only pose {off:.1} deg off the motion model: refused",
                 m.frame

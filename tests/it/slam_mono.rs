@@ -182,13 +182,7 @@ fn kidnapped_small_desk(
 #[test]
 fn a_monocular_turn_in_place_is_tracked_by_its_rotation() {
     use nalgebra::{Matrix3, Quaternion, UnitQuaternion};
-    let run = common::run_small(
-        "turn-in-place",
-        PerturbationSpec {
-            mono: true,
-            ..Default::default()
-        },
-    );
+    let run = run_small_mono("turn-in-place");
     let scenario: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(run.seq.join("scenario.json")).unwrap())
             .unwrap();
@@ -267,13 +261,7 @@ fn a_monocular_turn_in_place_is_tracked_by_its_rotation() {
 /// accurate as the rest. Before, the frames before the second keyframe had no pose.
 #[test]
 fn the_frames_the_initializer_waited_on_are_posed_in_its_map() {
-    let run = common::run_small(
-        "desk",
-        PerturbationSpec {
-            mono: true,
-            ..Default::default()
-        },
-    );
+    let run = run_small_mono("desk");
     let rows = states_rows(&run.out);
     let init_frame: usize = rows
         .iter()
@@ -306,6 +294,17 @@ fn the_frames_the_initializer_waited_on_are_posed_in_its_map() {
     let ev = run.summary.evaluation.as_ref().unwrap();
     let ate = ev["ate"]["stats"]["rmse"].as_f64().unwrap();
     assert!(ate < 0.04, "Sim3 ATE {ate} m");
+}
+
+/// The small generated scene `name`, run without depth.
+fn run_small_mono(name: &str) -> common::SmallRun {
+    common::run_small(
+        name,
+        PerturbationSpec {
+            mono: true,
+            ..Default::default()
+        },
+    )
 }
 
 /// The rows of a run's states.csv (header skipped), each split into its columns.
