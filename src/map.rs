@@ -62,6 +62,14 @@ pub struct Keyframe {
     /// millimetres in its creation units; empty when monocular): what depth registration
     /// aligns when no key point is shared.
     pub surface: Vec<u16>,
+    /// Monocular: a *panoramic* keyframe, made while the camera only turned (rotation-only
+    /// tracking, decision 0030). Its key points are bearings from its centre, which is the
+    /// position the turn began at; none had a map point when it was made. It is kept for
+    /// what a turn cannot give: a baseline later. Paired with a keyframe seen from elsewhere
+    /// in the map (another turn's, or the walk's after it), its bearings are triangulated in
+    /// the map's own scale (Pirchheim et al., ISMAR 2013).
+    #[serde(default)]
+    pub panoramic: bool,
 }
 
 impl Keyframe {
@@ -81,6 +89,7 @@ impl Keyframe {
             parent: None,
             units: 1.0,
             surface: m.surface.clone(),
+            panoramic: false,
         }
     }
 
@@ -186,6 +195,7 @@ impl Map {
                     parent: k.parent,
                     units: k.units,
                     surface: Vec::new(),
+                    panoramic: k.panoramic,
                 };
                 (id, kf)
             })

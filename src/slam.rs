@@ -84,6 +84,8 @@ pub struct SlamOutput {
     pub closures: Vec<ClosureRow>,
     /// Every merge of two maps, confirmed or still provisional (summary.json's `merges`).
     pub merges: Vec<MergeRow>,
+    /// Monocular: every end of a rotation-only stretch (summary.json's `lift_offs`).
+    pub lift_offs: Vec<crate::outputs::LiftOff>,
     /// Poses that did not stand, and why.
     pub discarded: Vec<DiscardedPose>,
     /// The state the session ended in (`Final`).
@@ -440,6 +442,7 @@ impl Slam {
             states: self.rec.states.clone(),
             closures: closure_rows(&self.machine),
             merges: merge_rows(&self.machine),
+            lift_offs: self.machine.lift_offs.clone(),
             discarded: self.rec.discarded.clone(),
             final_state,
         })

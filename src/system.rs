@@ -478,6 +478,7 @@ fn summarize(
         pools: machine.atlas.pools.len(),
         pools_rolled_back: machine.atlas.pools.iter().filter(|p| p.rolled_back).count(),
         merges: crate::slam::merge_rows(machine),
+        lift_offs: machine.lift_offs.clone(),
         controller: setup.config.controller.kind.as_str().into(),
         poses_discarded: fin.rec.rec.discarded.len(),
         discarded_poses: std::mem::take(&mut fin.rec.rec.discarded),

@@ -166,7 +166,9 @@ class Slam:
         rows) and a summary: final_state, frames, poses, maps, trajectory_frames,
         trajectory_maps, keyframes (N x 8), keyframe_maps, states (states.csv's rows),
         closures (closures.csv's rows), discarded (poses that did not stand, and why),
-        merges (every merge of two maps, with the frame that confirmed it or None). With
+        merges (every merge of two maps, with the frame that confirmed it or None),
+        lift_offs (monocular: where each rotation-only stretch ended, what its panoramic
+        keyframes' bearings did there, and whether the map went on). With
         ``out_dir``, also writes trajectory.txt, keyframes.txt, states.csv and closures.csv
         as ``homing run`` does."""
     def request_stop(

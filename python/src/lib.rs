@@ -622,6 +622,7 @@ impl Slam {
         d.set_item("closures", closure_rows(py, &out.closures)?)?;
         d.set_item("discarded", to_py(py, &out.discarded)?)?;
         d.set_item("merges", to_py(py, &out.merges)?)?;
+        d.set_item("lift_offs", to_py(py, &out.lift_offs)?)?;
         Ok((tum_rows(py, &out.trajectory), d))
     }
 }

@@ -243,7 +243,8 @@ pub struct Atlas {
 
 /// File header: magic, then version, payload length and CRC-32 of the payload.
 const MAGIC: &[u8; 13] = b"homing-atlas\n";
-pub const ATLAS_VERSION: u32 = 3;
+/// 4: keyframes say whether they are panoramic (decision 0030).
+pub const ATLAS_VERSION: u32 = 4;
 
 /// What is saved besides the maps, to refuse an atlas made with another camera.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

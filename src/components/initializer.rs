@@ -51,13 +51,21 @@ pub struct Initializer {
     /// that they can be posed in the map once a later pair starts it (#67: initialisation
     /// that waits without losing frames). At most `MONO_MAX_REFERENCE_AGE_S` of frames.
     waited: Vec<Measurement>,
+    /// Monocular: the frames before the reference (earlier references and the frames that
+    /// waited on them), at most `MONO_MAX_REFERENCE_AGE_S` older than the reference, kept so
+    /// that a map that starts can pose them too, tracked backwards from its first keyframe.
+    before: Vec<Measurement>,
     /// Monocular: the reference and the waited frames of the pair that just started a map,
-    /// for [`Initializer::take_waited`].
+    /// for [`Initializer::take_waited`], and the frames before the reference.
     started_from: Option<(Measurement, Vec<Measurement>)>,
+    started_before: Vec<Measurement>,
     /// Monocular: when the selected two-view model is ambiguous, try the other
     /// ([`TwoViewParams::try_other_model`]); the controller turns it off where a new map
     /// should wait.
     pub try_other_model: bool,
+    /// Monocular: keep the frames before the reference (`before`); the controller turns it
+    /// off after a loss, where they made the maps worse (decision 0030).
+    pub keep_before: bool,
 }
 
 /// What [`Initializer::match_to_reference`] found: reference keypoint → current keypoint.
@@ -75,8 +83,11 @@ impl Initializer {
             geo,
             reference: None,
             waited: Vec::new(),
+            before: Vec::new(),
             started_from: None,
+            started_before: Vec::new(),
             try_other_model: true,
+            keep_before: true,
         }
     }
 
@@ -116,6 +127,35 @@ impl Initializer {
     pub fn reset(&mut self) {
         self.reference = None;
         self.waited.clear();
+        self.before.clear();
+    }
+
+    /// `m` becomes the reference: the old one and the frames that waited on it join the
+    /// frames before it, of which those more than `MONO_MAX_REFERENCE_AGE_S` older than `m`
+    /// are dropped (as is all of it when time went backwards).
+    fn new_reference(&mut self, m: &Measurement) {
+        if let Some(r) = self.reference.take()
+            && self.keep_before
+        {
+            self.before.push(r);
+            self.before.append(&mut self.waited);
+        }
+        self.waited.clear();
+        if !self.keep_before {
+            self.before.clear();
+        }
+        if self.before.last().is_some_and(|b| b.t >= m.t) {
+            self.before.clear();
+        }
+        self.before
+            .retain(|b| m.t - b.t <= MONO_MAX_REFERENCE_AGE_S);
+        self.reference = Some(m.clone());
+    }
+
+    /// Monocular, after a map was started: the frames before its first view, in order (see
+    /// `before`).
+    pub fn take_before(&mut self) -> Vec<Measurement> {
+        std::mem::take(&mut self.started_before)
     }
 
     /// Monocular, after a map was started: its first view (the reference, the map's first
@@ -134,8 +174,7 @@ impl Initializer {
             m.t - r.t > MONO_MAX_REFERENCE_AGE_S || m.t <= r.t || r.len() < MONO_MIN_KEYPOINTS
         });
         if stale {
-            self.reference = Some(m.clone());
-            self.waited.clear();
+            self.new_reference(m);
             return None;
         }
         let r = self.reference.as_ref().expect("checked above");
@@ -147,8 +186,7 @@ impl Initializer {
                 matches.len(),
                 r.frame
             );
-            self.reference = Some(m.clone());
-            self.waited.clear();
+            self.new_reference(m);
             return None;
         }
         let x1: Vec<Vector2<f64>> = matches.iter().map(|&(a, _)| r.keypoints[a].un).collect();
@@ -189,6 +227,7 @@ impl Initializer {
             );
             let reference = self.reference.take().expect("paired above");
             self.started_from = Some((reference, std::mem::take(&mut self.waited)));
+            self.started_before = std::mem::take(&mut self.before);
         } else {
             self.waited.push(m.clone());
         }

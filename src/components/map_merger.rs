@@ -7,7 +7,7 @@ use crate::components::aligner::backproject;
 use crate::components::preprocess::{
     ImageGeometry, Measurement, hamming, rotation_consistent_pairs,
 };
-use crate::components::tracker::TrackResult;
+use crate::components::tracker::{TrackMethod, TrackResult};
 use crate::components::two_view::{k_matrix, projection_matrix, triangulate};
 use crate::config::MappingConfig;
 use crate::map::{KfId, Map, PointId};
@@ -46,6 +46,13 @@ const TRIANGULATION_RATIO: f64 = 0.8;
 const CHI2_EPIPOLAR: f64 = 3.84;
 /// Rays closer than this cosine do not triangulate well (ORB-SLAM: 0.9998, about 1.1°).
 const MAX_COS_PARALLAX: f64 = 0.9998;
+/// Panoramic keyframes (decision 0030): a keyframe is paired for triangulation with the
+/// keyframes (a panoramic one: any keyframe; another: panoramic ones) whose optical axis is
+/// within this angle of its own, as the views share part of the image; covisibility cannot
+/// tell, since a panoramic keyframe starts without map points. TUM's camera sees 62° × 48°.
+const PANORAMIC_MAX_VIEW_ANGLE_DEG: f64 = 40.0;
+/// Most keyframes paired with a keyframe by view direction (nearest in angle first).
+const PANORAMIC_NEIGHBOURS: usize = 10;
 
 pub struct MapMerger {
     cfg: MappingConfig,
@@ -334,6 +341,93 @@ impl MapMerger {
         (since >= self.cfg.keyframe_max_interval as usize || weak) && track.n_inliers > 15
     }
 
+    /// Monocular: a rotation-only frame whose view turned away from the tracker's anchor is
+    /// kept as a panoramic keyframe ([`Self::insert_panoramic_keyframe`]).
+    pub fn need_panoramic_keyframe(&self, track: &TrackResult) -> bool {
+        self.mono && track.able_to_track && track.method == TrackMethod::RotationAnchor
+    }
+
+    /// Inserts a rotation-only frame as a panoramic keyframe (decision 0030): its key points
+    /// are bearings from the turn's centre, without map points. They are triangulated at once
+    /// against the keyframes seen from elsewhere that look the same way (another turn's
+    /// panoramic keyframes, the walk's keyframes), in the map's scale since both poses are in
+    /// the map; what has no partner yet waits for the keyframes of the walk after the turn
+    /// ([`Self::create_new_points`] pairs those with panoramic keyframes by view direction).
+    /// The keyframe decision's state (last keyframe's frame, barren) is the mapping's own and
+    /// stays: a turn adds no baseline.
+    pub fn insert_panoramic_keyframe(
+        &mut self,
+        map: &mut Map,
+        m: &Measurement,
+        track: &TrackResult,
+    ) -> MergeReport {
+        let kf = map.add_keyframe(m, track.pose_cw);
+        let k = map.keyframes.get_mut(&kf).expect("just added");
+        k.parent = track.reference_kf;
+        k.panoramic = true;
+        let mut report = MergeReport {
+            keyframe: kf,
+            ..Default::default()
+        };
+        report.new_points = self.create_new_points(map, kf);
+        map.update_covisibility(kf);
+        if report.new_points > 0 {
+            report.fused = self.fuse(map, kf);
+            map.update_covisibility(kf);
+            self.local_ba(map, kf, &mut report);
+        }
+        report
+    }
+
+    /// What a turn's panoramic keyframes `panoramic` hold for the frame `m` where the camera
+    /// sets off (decision 0030): key points of `m` matched by descriptor (Lowe's ratio) to key
+    /// points of those that look its way (at `pose`; all of them when unposed), key points of
+    /// them all that have a map point by now, and how many are still in the map.
+    pub fn stored_bearings_seen(
+        &self,
+        map: &Map,
+        panoramic: &[KfId],
+        m: &Measurement,
+        pose: Option<&Isometry3<f64>>,
+    ) -> (usize, usize, usize) {
+        let kept: Vec<&crate::map::Keyframe> = panoramic
+            .iter()
+            .filter_map(|k| map.keyframes.get(k))
+            .collect();
+        let triangulated = kept.iter().map(|k| k.n_points()).sum();
+        let cos_max = PANORAMIC_MAX_VIEW_ANGLE_DEG.to_radians().cos();
+        let facing: Vec<&crate::map::Keyframe> = match pose {
+            Some(p) => {
+                let axis = p.rotation.inverse() * Vector3::z();
+                kept.iter()
+                    .copied()
+                    .filter(|k| (k.pose_cw.rotation.inverse() * Vector3::z()).dot(&axis) >= cos_max)
+                    .collect()
+            }
+            None => kept.clone(),
+        };
+        // Per keyframe, Lowe's ratio: one place seen by two of them is no ambiguity.
+        let seen = |d: &crate::components::preprocess::Descriptor, k: &crate::map::Keyframe| {
+            let (mut b1, mut b2) = (u32::MAX, u32::MAX);
+            for e in &k.descriptors {
+                let h = hamming(d, e);
+                if h < b1 {
+                    (b2, b1) = (b1, h);
+                } else if h < b2 {
+                    b2 = h;
+                }
+            }
+            b1 <= TRIANGULATION_MAX_DISTANCE
+                && (b2 == u32::MAX || (b1 as f64) < TRIANGULATION_RATIO * b2 as f64)
+        };
+        let matched = m
+            .descriptors
+            .iter()
+            .filter(|d| facing.iter().any(|k| seen(d, k)))
+            .count();
+        (matched, triangulated, kept.len())
+    }
+
     /// Inserts the frame as a keyframe and runs local mapping on it.
     pub fn insert_keyframe(
         &mut self,
@@ -404,7 +498,17 @@ impl MapMerger {
             let Some(p) = map.points.get(&pid) else {
                 continue;
             };
-            let age = current.saturating_sub(born);
+            // Panoramic keyframes are no mapping progress: a point triangulated in a turn
+            // waits for the walk after it to be confirmed (decision 0030).
+            let panoramic = if born < current {
+                map.keyframes
+                    .range(born + 1..=current)
+                    .filter(|(_, k)| k.panoramic)
+                    .count() as KfId
+            } else {
+                0
+            };
+            let age = current.saturating_sub(born).saturating_sub(panoramic);
             let weight = map.observation_weight(p);
             let found_ratio = p.found as f64 / p.visible.max(1) as f64;
             // ORB-SLAM: at most 2 observations (monocular) or weight 3 (with depth) is too few.
@@ -436,7 +540,14 @@ impl MapMerger {
         } else {
             TRIANGULATION_NEIGHBOURS_RGBD
         };
-        let neighbours = map.keyframes[&kf].best_covisible(n_neighbours);
+        let mut neighbours = map.keyframes[&kf].best_covisible(n_neighbours);
+        if self.mono {
+            for n in view_neighbours(map, kf) {
+                if !neighbours.contains(&n) {
+                    neighbours.push(n);
+                }
+            }
+        }
         let mut created = 0;
         for n in neighbours {
             let (k1, k2) = (&map.keyframes[&kf], &map.keyframes[&n]);
@@ -444,7 +555,13 @@ impl MapMerger {
             let (o1, o2) = (k1.center(), k2.center());
             if self.mono {
                 // A baseline that is tiny relative to the scene gives no depth (ORB-SLAM: 1 %).
-                let Some(median) = median_depth(map, k2) else {
+                // A panoramic keyframe has no points of its own: the scene depth of the
+                // keyframe its turn began from.
+                let median = match scene_median_depth(map, k2) {
+                    None if k2.panoramic => scene_median_depth(map, k1),
+                    d => d,
+                };
+                let Some(median) = median else {
                     continue;
                 };
                 if (o1 - o2).norm() / median < MONO_MIN_BASELINE {
@@ -848,6 +965,45 @@ pub fn apply_ba<'a>(
         }
     }
     Some(r)
+}
+
+/// [`median_depth`], or for a panoramic keyframe without points that of the keyframe its
+/// turn began from (up its parent chain).
+fn scene_median_depth(map: &Map, k: &crate::map::Keyframe) -> Option<f64> {
+    let mut k = k;
+    for _ in 0..64 {
+        if let Some(d) = median_depth(map, k) {
+            return Some(d);
+        }
+        if !k.panoramic {
+            return None;
+        }
+        k = map.keyframes.get(&k.parent?)?;
+    }
+    None
+}
+
+/// Keyframes of `map` paired with `kf` for triangulation by view direction (decision 0030):
+/// for a panoramic keyframe any other keyframe, for another only panoramic ones, whose optical
+/// axis is within `PANORAMIC_MAX_VIEW_ANGLE_DEG` of `kf`'s; the nearest in angle first. None
+/// in a map without panoramic keyframes.
+fn view_neighbours(map: &Map, kf: KfId) -> Vec<KfId> {
+    let k = &map.keyframes[&kf];
+    let axis = |k: &crate::map::Keyframe| k.pose_cw.rotation.inverse() * Vector3::z();
+    let a = axis(k);
+    let cos_max = PANORAMIC_MAX_VIEW_ANGLE_DEG.to_radians().cos();
+    let mut v: Vec<(f64, KfId)> = map
+        .keyframes
+        .values()
+        .filter(|o| o.id != kf && (k.panoramic || o.panoramic))
+        .map(|o| (a.dot(&axis(o)), o.id))
+        .filter(|(c, _)| *c >= cos_max)
+        .collect();
+    v.sort_by(|x, y| y.0.total_cmp(&x.0).then(x.1.cmp(&y.1)));
+    v.into_iter()
+        .take(PANORAMIC_NEIGHBOURS)
+        .map(|(_, id)| id)
+        .collect()
 }
 
 /// Median depth of a keyframe's points in its camera (ORB-SLAM's scene median depth).

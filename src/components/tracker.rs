@@ -23,7 +23,18 @@ pub enum TrackMethod {
     /// Monocular: too few map points in view, a rotation from key-point matches to the last
     /// tracked frame ([`crate::components::rotation`]); the position is kept.
     RotationOnly,
+    /// [`Self::RotationOnly`], and the view has turned away from the anchor: this frame is
+    /// the anchor of the next ones. The map merger keeps such a frame as a panoramic
+    /// keyframe (its bearings, for a baseline later: decision 0030).
+    RotationAnchor,
     Lost,
+}
+
+impl TrackMethod {
+    /// Posed by its rotation alone, its position the anchor's.
+    pub fn is_rotation_only(self) -> bool {
+        matches!(self, Self::RotationOnly | Self::RotationAnchor)
+    }
 }
 
 #[derive(Debug, Clone)]
@@ -69,6 +80,9 @@ pub struct Tracker {
     /// Monocular: rotation-only tracking is allowed, from this view (see
     /// [`Self::with_rotation_only`]). `None` with depth, where a turn keeps its points.
     rotation: Option<RotationOnly>,
+    /// The last tracked frame was posed by its rotation alone: the map's points in view are
+    /// not the last frame's (see [`Self::with_map_prediction`]).
+    after_rotation: bool,
 }
 
 /// Monocular rotation-only tracking: the view rotations are measured from.
@@ -154,6 +168,7 @@ impl Tracker {
             last_angles: Vec::new(),
             reference_kf: None,
             rotation: None,
+            after_rotation: false,
         }
     }
 
@@ -191,6 +206,7 @@ impl Tracker {
         self.last_angles.clear();
         self.reference_kf = Some(reference_kf);
         self.clear_anchor();
+        self.after_rotation = false;
     }
 
     /// The frame just tracked closed a loop in its own map: the map moved under the camera,
@@ -299,6 +315,12 @@ impl Tracker {
         {
             attempt = self.with_local_map_prediction(m, map, predicted);
         }
+        if attempt.is_none()
+            && self.after_rotation
+            && let Some((predicted, _)) = prediction
+        {
+            attempt = self.with_map_prediction(m, map, predicted);
+        }
         if attempt.is_none() {
             attempt = self.with_reference_keyframe(m, map);
         }
@@ -346,6 +368,7 @@ impl Tracker {
             }
         }
         self.refused_in_a_row = 0;
+        self.after_rotation = false;
         let reference_kf = reference_keyframe(map, &matches);
         self.advance(pose, m.t);
         self.last_angles = m.keypoints.iter().map(|k| k.angle).collect();
@@ -481,19 +504,22 @@ impl Tracker {
             est.mean_chi2
         );
         self.refused_in_a_row = 0;
+        self.after_rotation = true;
         self.twist = Vector6::zeros();
         self.advance(pose, m.t);
+        let mut method = TrackMethod::RotationOnly;
         if est.inliers < ROTATION_REANCHOR_INLIERS
             && let Some(r) = self.rotation.as_mut()
         {
             r.anchor = Some((m.clone(), pose));
+            method = TrackMethod::RotationAnchor;
         }
         TrackResult {
             pose_cw: pose,
             matches: vec![None; m.len()],
             n_inliers: 0,
             able_to_track: true,
-            method: TrackMethod::RotationOnly,
+            method,
             reference_kf: self.reference_kf,
             visible: Vec::new(),
             twist: self.twist,
@@ -570,6 +596,32 @@ impl Tracker {
         tracing::trace!(
             "motion model with the local map: {} keyframes, {} candidates, {n} matches",
             local_kfs.len(),
+            cands.len()
+        );
+        if n < 20 {
+            return None;
+        }
+        let (pose, matches, inl) = self.refine(m, map, &predicted, matches);
+        (inl >= 10).then_some((pose, matches, TrackMethod::MotionModel))
+    }
+
+    /// After a rotation-only stretch, the motion model's prediction searched with every point
+    /// of the map: the last frame tracked on map points looked elsewhere, and the points now
+    /// in view may be ones the turn's panoramic keyframes triangulated against another view
+    /// (decision 0030), not covisible with the last frame's. The projection search keeps only
+    /// the points in the predicted view (frustum, distance range, viewing angle).
+    fn with_map_prediction(
+        &self,
+        m: &Measurement,
+        map: &Map,
+        predicted: Isometry3<f64>,
+    ) -> Option<(Isometry3<f64>, Vec<Option<PointId>>, TrackMethod)> {
+        let cands: Vec<Candidate> = map.points.values().map(candidate).collect();
+        let mut matches = vec![None; m.len()];
+        let radius = 2.0 * self.cfg.search_radius_px;
+        let n = self.search_by_projection(m, &predicted, &cands, radius, &mut matches, None);
+        tracing::trace!(
+            "motion model with the whole map after a turn: {} candidates, {n} matches",
             cands.len()
         );
         if n < 20 {

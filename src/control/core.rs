@@ -1,7 +1,7 @@
 //! Core: its Mapping region (tracking, keyframes, local mapping, the expectation and depth checks) and its Relocalize region (place recognition, validation, the pools of candidates).
 
-use super::StateMachine;
 use super::spec::{Acceptance, Activity, LoopScope, State};
+use super::{StateMachine, TurnStretch};
 use crate::atlas::{MapId, PoolId};
 use crate::components::global_optimizer::{self};
 use crate::components::loop_detector::Neighbourhood;
@@ -38,6 +38,7 @@ impl StateMachine {
         } else {
             let map = &self.atlas.maps[&cur];
             let track = timing.time("track", || self.tracker.track(m, map));
+            self.note_turn(cur, m, &track);
             self.track_inliers = Some(track.n_inliers);
             self.track_matched = track.matches.iter().map(Option::is_some).collect();
             tracing::debug!(
@@ -52,10 +53,74 @@ impl StateMachine {
                 return Some(track);
             }
         }
+        if gap > self.cfg.controller.reacquire_gap_s {
+            self.end_turn(m, None);
+        }
         self.flags.able_to_track = false;
         self.tracker.lose();
         self.discard_unconfirmed(cur, m);
         None
+    }
+
+    /// Monocular: a rotation-only frame starts or extends the turn under way; any other
+    /// frame ends it (a lift-off, [`Self::end_turn`]).
+    fn note_turn(&mut self, cur: MapId, m: &Measurement, track: &TrackResult) {
+        if !track.method.is_rotation_only() {
+            self.end_turn(m, Some(track));
+            return;
+        }
+        if self.turn.as_ref().is_some_and(|t| t.map != cur) {
+            self.end_turn(m, None);
+        }
+        let t = self.turn.get_or_insert_with(|| TurnStretch {
+            map: cur,
+            first_frame: m.frame,
+            frames: 0,
+            panoramic: Vec::new(),
+        });
+        t.frames += 1;
+    }
+
+    /// The turn under way ended at frame `m`: tracked on map points (`track` able) or lost.
+    /// Counts what its stored bearings did for the frame (decision 0030), for the log and
+    /// summary.json.
+    fn end_turn(&mut self, m: &Measurement, track: Option<&TrackResult>) {
+        let Some(turn) = self.turn.take() else {
+            return;
+        };
+        let continued = track.is_some_and(|t| t.able_to_track);
+        let (matched, triangulated, kept) = match self.atlas.maps.get(&turn.map) {
+            Some(map) => {
+                let pose = track.map(|t| t.pose_cw);
+                self.merger
+                    .stored_bearings_seen(map, &turn.panoramic, m, pose.as_ref())
+            }
+            None => (0, 0, 0),
+        };
+        let row = crate::outputs::LiftOff {
+            frame: m.frame,
+            turn_first_frame: turn.first_frame,
+            turn_frames: turn.frames,
+            panoramic_keyframes: kept,
+            bearings_matched: matched,
+            bearings_triangulated: triangulated,
+            continued,
+        };
+        tracing::info!(
+            "frame {}: lift-off after {} rotation-only frames from frame {}: {} panoramic keyframes, {} key points matched to stored bearings, {} bearings triangulated, {}",
+            row.frame,
+            row.turn_frames,
+            row.turn_first_frame,
+            row.panoramic_keyframes,
+            row.bearings_matched,
+            row.bearings_triangulated,
+            if continued {
+                "tracked in the map"
+            } else {
+                "lost"
+            }
+        );
+        self.lift_offs.push(row);
     }
 
     /// A map lost on the very next frame after the one it was started from holds a single
@@ -69,7 +134,7 @@ impl StateMachine {
         if id != cur || self.last_tracked_t != Some(t0) {
             return;
         }
-        if self.waited_poses.as_ref().is_some_and(|(w, _)| *w == id) {
+        if self.waited_poses.as_ref().is_some_and(|(w, ..)| *w == id) {
             self.waited_poses = None;
         }
         if let Some(map) = self.atlas.discard_map(id) {
@@ -202,6 +267,24 @@ impl StateMachine {
         timing: &mut Timing,
     ) -> Option<KfId> {
         let map = self.atlas.maps.get_mut(&cur).expect("current map exists");
+        if self.merger.need_panoramic_keyframe(track) {
+            let r = timing.time("map", || {
+                self.merger.insert_panoramic_keyframe(map, m, track)
+            });
+            tracing::debug!(
+                "panoramic keyframe {} at frame {}: {} bearings triangulated, {} fused",
+                r.keyframe,
+                m.frame,
+                r.new_points,
+                r.fused
+            );
+            self.keyframe_made = true;
+            self.tracker.reference_kf = Some(r.keyframe);
+            if let Some(t) = self.turn.as_mut() {
+                t.panoramic.push(r.keyframe);
+            }
+            return Some(r.keyframe);
+        }
         if !self.merger.need_keyframe(map, m, track, true) {
             return None;
         }

@@ -2,7 +2,9 @@
 
 use super::{EarlierPose, StateMachine};
 use crate::atlas::MapId;
+use crate::components::map_merger::FrameObservations;
 use crate::components::preprocess::Measurement;
+use crate::components::tracker::TrackResult;
 use crate::map::KfId;
 use crate::outputs::Timing;
 use nalgebra::Isometry3;
@@ -16,6 +18,8 @@ impl StateMachine {
         // No map yet, nothing to return to: the first map starts as soon as a pair allows,
         // from the other two-view model when the selected one is ambiguous (decision 0027).
         self.initializer.try_other_model = true;
+        // Nor anything to pose the frames before the pair in but this map (decision 0030).
+        self.initializer.keep_before = true;
         let pose = self.start_new_map(m, timing)?;
         self.flags.initialized = true;
         // The first keyframe's frame is located (at the origin of the new map).
@@ -85,6 +89,26 @@ impl StateMachine {
             crate::components::tracker::Tracker::new(&self.cfg.tracker, self.geo.clone())
                 .monocular(true);
         tracker.reset(first.pose_cw, reference.t, &first.points, first.id);
+        let mut observations = Vec::new();
+        // A tracked frame's pose, and its observations for Final's refinement.
+        fn keep(
+            poses: &mut Vec<EarlierPose>,
+            observations: &mut Vec<FrameObservations>,
+            w: &Measurement,
+            track: &TrackResult,
+            k: &crate::map::Keyframe,
+        ) {
+            let relative = k.relative_of(&track.pose_cw);
+            poses.push(EarlierPose {
+                frame: w.frame,
+                t: w.t,
+                relative,
+                kf: k.id,
+            });
+            let mut obs = FrameObservations::new(w, track);
+            obs.anchor(k, relative, false);
+            observations.push(obs);
+        }
         for w in &waited {
             let track = tracker.track(w, map);
             if !track.able_to_track {
@@ -93,27 +117,59 @@ impl StateMachine {
             let Some(k) = track.reference_kf.and_then(|k| map.keyframes.get(&k)) else {
                 continue;
             };
-            poses.push(EarlierPose {
-                frame: w.frame,
-                t: w.t,
-                relative: k.relative_of(&track.pose_cw),
-                kf: k.id,
-            });
+            keep(&mut poses, &mut observations, w, &track, k);
         }
         tracing::debug!(
             "map {id}: {} of the {} frames the initializer waited on are posed in it",
             poses.len(),
             waited.len() + 1
         );
-        self.waited_poses = Some((id, poses));
+        // The frames before the reference, backwards from it, while they are tracked: the
+        // camera was there just before, and the map's first view is the one it saw last (the
+        // small `turn-in-place` stood still, then walked, for 36 frames before its map's
+        // reference). The first frame that is not tracked, or a break in the frames, ends
+        // it: going on would be a guess.
+        let before = self.initializer.take_before();
+        let mut tracker =
+            crate::components::tracker::Tracker::new(&self.cfg.tracker, self.geo.clone())
+                .monocular(true);
+        tracker.reset(first.pose_cw, reference.t, &first.points, first.id);
+        let mut next_t = reference.t;
+        let mut backwards = 0;
+        for b in before.iter().rev() {
+            if next_t - b.t > self.cfg.controller.reacquire_gap_s {
+                break;
+            }
+            let track = tracker.track(b, map);
+            let Some(k) = track
+                .reference_kf
+                .and_then(|k| map.keyframes.get(&k))
+                .filter(|_| track.able_to_track)
+            else {
+                break;
+            };
+            keep(&mut poses, &mut observations, b, &track, k);
+            next_t = b.t;
+            backwards += 1;
+        }
+        if !before.is_empty() {
+            tracing::debug!(
+                "map {id}: {backwards} of the {} frames before the initializer's reference are posed in it, backwards",
+                before.len()
+            );
+        }
+        self.waited_poses = Some((id, poses, observations));
     }
 
     /// The waited frames' poses stand once their map is confirmed: a frame after its first
     /// was tracked (in it, or in the map it was merged into).
     pub(super) fn release_waited_poses(&mut self, m: &Measurement) {
         if self.waited_poses.is_some() && self.founded.is_none_or(|(_, t0)| m.t > t0) {
-            let (_, poses) = self.waited_poses.take().expect("checked above");
+            let (_, poses, observations) = self.waited_poses.take().expect("checked above");
             self.earlier_poses.extend(poses);
+            for obs in observations {
+                self.frame_obs.insert(obs);
+            }
         }
     }
 }

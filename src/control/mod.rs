@@ -32,6 +32,16 @@ use crate::optim::Intrinsics;
 use crate::outputs::{ClosureRow, Flags, Timing, Transition};
 use nalgebra::Isometry3;
 pub use spec::{Activity, Guard, MachineSpec, State};
+
+/// Monocular: frames posed by their rotation alone, one after another (decision 0030).
+#[derive(Debug, Clone)]
+struct TurnStretch {
+    map: MapId,
+    first_frame: usize,
+    frames: usize,
+    /// The panoramic keyframes it made.
+    panoramic: Vec<KfId>,
+}
 use std::collections::{BTreeMap, BTreeSet};
 
 /// What one step produced.
@@ -177,7 +187,12 @@ pub struct StateMachine {
     /// Monocular: poses of the frames the initializer waited on, found when their map
     /// started; held until the map is confirmed (a map discarded as a false start takes
     /// them with it), then handed out with the step ([`StepOutput::earlier`]).
-    waited_poses: Option<(MapId, Vec<EarlierPose>)>,
+    /// With their observations, for Final's refinement (as every tracked frame's).
+    waited_poses: Option<(
+        MapId,
+        Vec<EarlierPose>,
+        Vec<crate::components::map_merger::FrameObservations>,
+    )>,
     earlier_poses: Vec<EarlierPose>,
     /// A frame Idle re-tracked in the current map, for the entered state's Mapping region
     /// (see `map_retracked`); and the frame's pose when that made it a keyframe.
@@ -194,6 +209,9 @@ pub struct StateMachine {
     /// Keyframes that left the atlas: only those of a map discarded as one unconfirmed view
     /// (`discard_unconfirmed`); a revoked pool keeps every keyframe.
     pub keyframes_discarded: usize,
+    /// Monocular: the rotation-only stretch under way (decision 0030), and every one ended.
+    turn: Option<TurnStretch>,
+    pub lift_offs: Vec<crate::outputs::LiftOff>,
     /// Set when the machine stopped because the map is unusable.
     pub stop_reason: Option<String>,
     /// After a user stop: when Final's refinement must end (`mapping.final_refinement_max_s`).
@@ -258,6 +276,8 @@ impl StateMachine {
             reoptimized: Default::default(),
             stop_reason: None,
             keyframes_discarded: 0,
+            turn: None,
+            lift_offs: Vec::new(),
             retracked: None,
             resume: None,
             lost_place: None,

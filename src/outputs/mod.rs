@@ -223,6 +223,27 @@ pub struct MergeRow {
     pub rolled_back: bool,
 }
 
+/// Monocular: the end of a rotation-only stretch, where the camera sets off again
+/// (`summary.json`'s `lift_offs`, decision 0030).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct LiftOff {
+    /// The first frame not posed by its rotation alone.
+    pub frame: usize,
+    /// The stretch's first rotation-only frame and how many it had.
+    pub turn_first_frame: usize,
+    pub turn_frames: usize,
+    /// Panoramic keyframes the stretch left in the map.
+    pub panoramic_keyframes: usize,
+    /// Key points of the lift-off frame matched (by descriptor) to a key point of those
+    /// panoramic keyframes that look its way: the stored bearings it sees again.
+    pub bearings_matched: usize,
+    /// Key points of those panoramic keyframes that have a map point by now: the bearings
+    /// triangulated, against another turn's view or the walk's.
+    pub bearings_triangulated: usize,
+    /// The frame was tracked in the map (`false`: lost there).
+    pub continued: bool,
+}
+
 /// `summary.json`.
 #[derive(Debug, Clone, Serialize)]
 pub struct Summary {
@@ -248,6 +269,9 @@ pub struct Summary {
     /// Every merge of two maps, and whether later frames confirmed it (re-observed what only
     /// the map merged into had seen).
     pub merges: Vec<MergeRow>,
+    /// Monocular: every end of a rotation-only stretch, and what the turn's stored bearings
+    /// did for it (decision 0030).
+    pub lift_offs: Vec<LiftOff>,
     /// The modal controller that ran (`ours`, `orbslam2`, `proslam`, `ldso`).
     pub controller: String,
     /// Frames whose pose was discarded because it was tracked on a map a rollback undid.

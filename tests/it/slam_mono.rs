@@ -254,6 +254,100 @@ fn a_monocular_turn_in_place_is_tracked_by_its_rotation() {
     assert!(rms <= 1.0, "rotation error over the turn {rms:.2} deg RMS");
 }
 
+/// Panoramic keyframes and delayed triangulation (#76, decision 0030): small `turn-in-place`
+/// turns twice in full, 0.9 m apart, then turns towards its next waypoint and walks there.
+/// That direction was seen only by rotation-only frames. Their panoramic keyframes, paired
+/// across the two turns' centres, triangulate it in the map's own scale, so the walk after the
+/// second turn is tracked on those points: it continues in the walk's map, every frame of it
+/// posed, at the map's scale (within 5 % of the walk before the turns, both against the
+/// truth). Before, the rotation-only frames kept no bearings: the walk lost the map at its
+/// first steps and a second map started 130 frames later.
+#[test]
+fn a_monocular_walk_into_what_only_a_turn_saw_continues_in_the_map_at_its_scale() {
+    let run = run_small_mono("turn-in-place");
+    let scenario: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.seq.join("scenario.json")).unwrap())
+            .unwrap();
+    let step = |name: &str| {
+        let s = scenario["steps"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|s| s["name"] == name)
+            .unwrap_or_else(|| panic!("the scenario has a step {name:?}"));
+        (
+            s["first_frame"].as_u64().unwrap() as usize,
+            s["last_frame"].as_u64().unwrap() as usize,
+        )
+    };
+    let (before, after) = (step("walk"), step("walk on again"));
+    let frames: Vec<(usize, f64, String)> = states_rows(&run.out)
+        .into_iter()
+        .map(|c| (c[0].parse().unwrap(), c[1].parse().unwrap(), c[9].clone()))
+        .collect();
+    let map_of = |f: usize| frames.iter().find(|r| r.0 == f).unwrap().2.clone();
+    let walk_map = map_of(before.1);
+    assert!(
+        !walk_map.is_empty(),
+        "the walk before the turns is not tracked"
+    );
+    for f in after.0..=after.1 {
+        assert_eq!(map_of(f), walk_map, "frame {f} of the walk after the turns");
+    }
+    // The turn's stored bearings carried the camera where it set off.
+    let carried = run
+        .summary
+        .lift_offs
+        .iter()
+        .filter(|l| l.frame > before.1 && l.frame <= after.0 + 30)
+        .any(|l| l.continued && l.bearings_triangulated > 0);
+    assert!(carried, "lift-offs: {:?}", run.summary.lift_offs);
+    // Scale (metres per map unit) of a stretch: the RMS spread of the true positions over that
+    // of the estimated ones, each about its centroid.
+    let poses = |path: &std::path::Path| -> Vec<(f64, nalgebra::Vector3<f64>)> {
+        std::fs::read_to_string(path)
+            .unwrap()
+            .lines()
+            .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
+            .map(|l| {
+                let v: Vec<f64> = l.split_whitespace().map(|x| x.parse().unwrap()).collect();
+                (v[0], nalgebra::Vector3::new(v[1], v[2], v[3]))
+            })
+            .collect()
+    };
+    let (est, truth) = (
+        poses(&run.out.join("trajectory.txt")),
+        poses(&run.seq.join("groundtruth.txt")),
+    );
+    let at = |rows: &[(f64, nalgebra::Vector3<f64>)], t: f64, tol: f64| {
+        rows.iter()
+            .filter(|r| (r.0 - t).abs() <= tol)
+            .min_by(|a, b| (a.0 - t).abs().total_cmp(&(b.0 - t).abs()))
+            .map(|r| r.1)
+    };
+    let scale = |(a, b): (usize, usize)| {
+        let pairs: Vec<_> = frames
+            .iter()
+            .filter(|r| (a..=b).contains(&r.0))
+            .map(|r| (at(&est, r.1, 1e-4).unwrap(), at(&truth, r.1, 0.02).unwrap()))
+            .collect();
+        let n = pairs.len() as f64;
+        let (ce, ct) = pairs.iter().fold(
+            (nalgebra::Vector3::zeros(), nalgebra::Vector3::zeros()),
+            |(e, t), (pe, pt)| (e + pe / n, t + pt / n),
+        );
+        let spread = |c: nalgebra::Vector3<f64>, f: &dyn Fn(&(_, _)) -> nalgebra::Vector3<f64>| {
+            pairs.iter().map(|p| (f(p) - c).norm_squared()).sum::<f64>()
+        };
+        (spread(ct, &|p| p.1) / spread(ce, &|p| p.0)).sqrt()
+    };
+    let (s0, s1) = (scale(before), scale(after));
+    assert!(
+        (s1 / s0 - 1.0).abs() <= 0.05,
+        "scale of the walk after the turns {s1:.3} m per unit, before them {s0:.3}"
+    );
+}
+
 /// Initialisation that waits without losing frames (#67): the two-view initializer starts the
 /// small `desk`'s map a dozen frames after its first view. The frames it waited on (its
 /// reference, the map's first keyframe, and those up to the second) are tracked in the new
