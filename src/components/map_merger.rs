@@ -984,20 +984,32 @@ fn scene_median_depth(map: &Map, k: &crate::map::Keyframe) -> Option<f64> {
 }
 
 /// Keyframes of `map` paired with `kf` for triangulation by view direction (decision 0030):
-/// for a panoramic keyframe any other keyframe, for another only panoramic ones, whose optical
-/// axis is within `PANORAMIC_MAX_VIEW_ANGLE_DEG` of `kf`'s; the nearest in angle first. None
-/// in a map without panoramic keyframes.
+/// for a panoramic keyframe any other keyframe, for another only panoramic ones, that look at
+/// the same place: optical axes within `PANORAMIC_MAX_VIEW_ANGLE_DEG`, each one's scene
+/// centre (its median scene depth along its axis) in the other's image, and centres no
+/// further apart than that depth. The nearest in angle first. A look-alike place elsewhere
+/// (`aliasing`'s room B, a copy of room A) faces the same way but not the same place; paired
+/// by direction alone, its copies were triangulated into the map. None in a map without
+/// panoramic keyframes.
 fn view_neighbours(map: &Map, kf: KfId) -> Vec<KfId> {
     let k = &map.keyframes[&kf];
     let axis = |k: &crate::map::Keyframe| k.pose_cw.rotation.inverse() * Vector3::z();
     let a = axis(k);
     let cos_max = PANORAMIC_MAX_VIEW_ANGLE_DEG.to_radians().cos();
+    let Some(depth_k) = scene_median_depth(map, k) else {
+        return Vec::new();
+    };
     let mut v: Vec<(f64, KfId)> = map
         .keyframes
         .values()
         .filter(|o| o.id != kf && (k.panoramic || o.panoramic))
-        .map(|o| (a.dot(&axis(o)), o.id))
+        .map(|o| (a.dot(&axis(o)), o))
         .filter(|(c, _)| *c >= cos_max)
+        .filter(|(_, o)| {
+            let depth_o = scene_median_depth(map, o).unwrap_or(depth_k);
+            (o.center() - k.center()).norm() <= depth_k.min(depth_o)
+        })
+        .map(|(c, o)| (c, o.id))
         .collect();
     v.sort_by(|x, y| y.0.total_cmp(&x.0).then(x.1.cmp(&y.1)));
     v.into_iter()
