@@ -984,13 +984,12 @@ fn scene_median_depth(map: &Map, k: &crate::map::Keyframe) -> Option<f64> {
 }
 
 /// Keyframes of `map` paired with `kf` for triangulation by view direction (decision 0030):
-/// for a panoramic keyframe any other keyframe, for another only panoramic ones, that look at
-/// the same place: optical axes within `PANORAMIC_MAX_VIEW_ANGLE_DEG`, each one's scene
-/// centre (its median scene depth along its axis) in the other's image, and centres no
-/// further apart than that depth. The nearest in angle first. A look-alike place elsewhere
-/// (`aliasing`'s room B, a copy of room A) faces the same way but not the same place; paired
-/// by direction alone, its copies were triangulated into the map. None in a map without
-/// panoramic keyframes.
+/// for a panoramic keyframe any other keyframe, for another only panoramic ones, whose optical
+/// axis is within `PANORAMIC_MAX_VIEW_ANGLE_DEG` of `kf`'s and whose centre is no further from
+/// `kf`'s than the scene depth of either: they look at the same place. A look-alike place
+/// elsewhere faces the same way from further off: paired by direction alone, `aliasing`'s
+/// room B (a copy of room A) was triangulated against room A's keyframes. The nearest in angle
+/// first; none in a map without panoramic keyframes.
 fn view_neighbours(map: &Map, kf: KfId) -> Vec<KfId> {
     let k = &map.keyframes[&kf];
     let axis = |k: &crate::map::Keyframe| k.pose_cw.rotation.inverse() * Vector3::z();
