@@ -361,14 +361,8 @@ impl MapMerger {
         m: &Measurement,
         track: &TrackResult,
     ) -> MergeReport {
-        let kf = map.add_keyframe(m, track.pose_cw);
-        let k = map.keyframes.get_mut(&kf).expect("just added");
-        k.parent = track.reference_kf;
-        k.panoramic = true;
-        let mut report = MergeReport {
-            keyframe: kf,
-            ..Default::default()
-        };
+        let (kf, mut report) = add_tracked_keyframe(map, m, track);
+        map.keyframes.get_mut(&kf).expect("just added").panoramic = true;
         report.new_points = self.create_new_points(map, kf);
         map.update_covisibility(kf);
         if report.new_points > 0 {
@@ -398,10 +392,10 @@ impl MapMerger {
         let cos_max = PANORAMIC_MAX_VIEW_ANGLE_DEG.to_radians().cos();
         let facing: Vec<&crate::map::Keyframe> = match pose {
             Some(p) => {
-                let axis = p.rotation.inverse() * Vector3::z();
+                let axis = optical_axis(p);
                 kept.iter()
                     .copied()
-                    .filter(|k| (k.pose_cw.rotation.inverse() * Vector3::z()).dot(&axis) >= cos_max)
+                    .filter(|k| optical_axis(&k.pose_cw).dot(&axis) >= cos_max)
                     .collect()
             }
             None => kept.clone(),
@@ -435,14 +429,7 @@ impl MapMerger {
         m: &Measurement,
         track: &TrackResult,
     ) -> MergeReport {
-        let kf = map.add_keyframe(m, track.pose_cw);
-        let k = map.keyframes.get_mut(&kf).expect("just added");
-        k.twist = track.twist;
-        k.parent = track.reference_kf;
-        let mut report = MergeReport {
-            keyframe: kf,
-            ..Default::default()
-        };
+        let (kf, mut report) = add_tracked_keyframe(map, m, track);
         for (i, p) in track.matches.iter().enumerate() {
             if let Some(p) = p {
                 // A point claimed by two keypoints keeps the first.
@@ -967,6 +954,29 @@ pub fn apply_ba<'a>(
     Some(r)
 }
 
+/// The tracked frame `m` as a new keyframe of `map`: its pose, velocity and tracking parent;
+/// and the report of its local mapping, still empty.
+fn add_tracked_keyframe(
+    map: &mut Map,
+    m: &Measurement,
+    track: &TrackResult,
+) -> (KfId, MergeReport) {
+    let kf = map.add_keyframe(m, track.pose_cw);
+    let k = map.keyframes.get_mut(&kf).expect("just added");
+    k.twist = track.twist;
+    k.parent = track.reference_kf;
+    let report = MergeReport {
+        keyframe: kf,
+        ..Default::default()
+    };
+    (kf, report)
+}
+
+/// The optical axis (unit, world frame) of a camera at `pose_cw`.
+fn optical_axis(pose_cw: &Isometry3<f64>) -> Vector3<f64> {
+    pose_cw.rotation.inverse() * Vector3::z()
+}
+
 /// [`median_depth`], or for a panoramic keyframe without points that of the keyframe its
 /// turn began from (up its parent chain).
 fn scene_median_depth(map: &Map, k: &crate::map::Keyframe) -> Option<f64> {
@@ -992,18 +1002,23 @@ fn scene_median_depth(map: &Map, k: &crate::map::Keyframe) -> Option<f64> {
 /// first; none in a map without panoramic keyframes.
 fn view_neighbours(map: &Map, kf: KfId) -> Vec<KfId> {
     let k = &map.keyframes[&kf];
-    let axis = |k: &crate::map::Keyframe| k.pose_cw.rotation.inverse() * Vector3::z();
-    let a = axis(k);
+    let a = optical_axis(&k.pose_cw);
     let cos_max = PANORAMIC_MAX_VIEW_ANGLE_DEG.to_radians().cos();
-    let Some(depth_k) = scene_median_depth(map, k) else {
-        return Vec::new();
-    };
-    let mut v: Vec<(f64, KfId)> = map
+    let facing: Vec<(f64, &crate::map::Keyframe)> = map
         .keyframes
         .values()
         .filter(|o| o.id != kf && (k.panoramic || o.panoramic))
-        .map(|o| (a.dot(&axis(o)), o))
+        .map(|o| (a.dot(&optical_axis(&o.pose_cw)), o))
         .filter(|(c, _)| *c >= cos_max)
+        .collect();
+    if facing.is_empty() {
+        return Vec::new();
+    }
+    let Some(depth_k) = scene_median_depth(map, k) else {
+        return Vec::new();
+    };
+    let mut v: Vec<(f64, KfId)> = facing
+        .into_iter()
         .filter(|(_, o)| {
             let depth_o = scene_median_depth(map, o).unwrap_or(depth_k);
             (o.center() - k.center()).norm() <= depth_k.min(depth_o)
