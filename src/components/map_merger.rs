@@ -740,7 +740,7 @@ impl MapMerger {
     fn local_ba(&mut self, map: &mut Map, kf: KfId, report: &mut MergeReport) {
         let mut local: Vec<KfId> = vec![kf];
         local.extend(map.keyframes[&kf].best_covisible(self.cfg.local_ba_window as usize - 1));
-        self.fix_scale_gauge(map, &mut local);
+        self.hold_fixed_mono(map, &mut local);
         let first = BaParams {
             iterations: 5,
             ..Default::default()
@@ -777,18 +777,26 @@ impl MapMerger {
         }
     }
 
-    /// Monocular: the map's second keyframe is held fixed too (removed from `free`). With only
-    /// the first keyframe fixed, the BA's gauge keeps a free scale, and while the window still
-    /// holds every keyframe the solver lets it drift (by tens of percent in one BA on fr1_xyz);
-    /// frame poses, stored relative to their keyframe, would then no longer agree with the
-    /// rescaled map. The pair's distance, set at initialisation, fixes the scale.
-    fn fix_scale_gauge(&self, map: &Map, free: &mut Vec<KfId>) {
+    /// Monocular: the map's second keyframe and the panoramic keyframes are held fixed (removed
+    /// from `free`). With only the first keyframe fixed, the BA's gauge keeps a free scale, and
+    /// while the window still holds every keyframe the solver lets it drift (by tens of percent
+    /// in one BA on fr1_xyz); frame poses, stored relative to their keyframe, would then no
+    /// longer agree with the rescaled map. The pair's distance, set at initialisation, fixes
+    /// the scale.
+    fn hold_fixed_mono(&self, map: &Map, free: &mut Vec<KfId>) {
         if !self.mono {
             return;
         }
         if let Some(&second) = map.keyframes.keys().nth(1) {
             free.retain(|k| *k != second);
         }
+        // A panoramic keyframe's position is the turn's centre, taken from the map-tracked
+        // pose the turn began at; its bearings have no depth and do not observe it. Left free,
+        // the few points triangulated from it later drag it away (small `turn-in-place` mono,
+        // drops of 5 s in both turns: a panoramic keyframe moved 0.34 m, the walk after the
+        // turns went 0.5 m off on points triangulated from it, and three wrong closures
+        // stood). It takes part as a constant, like a keyframe outside the window.
+        free.retain(|k| !map.keyframes[k].panoramic);
     }
 
     /// Full BA over every keyframe of the map (the first one fixed for the gauge), as after a
@@ -1230,7 +1238,7 @@ impl MapMerger {
             return None;
         }
         let mut free: Vec<KfId> = map.keyframes.keys().copied().collect();
-        self.fix_scale_gauge(map, &mut free);
+        self.hold_fixed_mono(map, &mut free);
         // With frames, every camera starts placed on the map, so the solve stops once a step
         // gains less than a millionth of the cost instead of running all its iterations.
         let tol = if frames.is_empty() {
@@ -1438,6 +1446,27 @@ mod tests {
             twist: Vector6::zeros(),
             mean_chi2: 1.0,
         }
+    }
+
+    /// A panoramic keyframe sits at its turn's centre, which its bearings do not observe: the
+    /// BA holds it where rotation-only tracking put it, while it still moves the others.
+    #[test]
+    fn the_bundle_adjustment_holds_a_panoramic_keyframe_where_its_turn_put_it() {
+        let (merger, mut map, reference, m) = mono_wall();
+        let off = Isometry3::translation(0.03, -0.02, 0.01);
+        let panoramic = map.add_keyframe(&m, off);
+        map.keyframes.get_mut(&panoramic).unwrap().panoramic = true;
+        let points: Vec<_> = map.keyframes[&reference].points.clone();
+        for (i, p) in points.iter().enumerate() {
+            map.observe(panoramic, i, p.expect("every key point holds a point"));
+        }
+        let before = map.keyframes[&reference].pose_cw;
+        merger.global_ba(&mut map).expect("a BA ran");
+        assert_eq!(map.keyframes[&panoramic].pose_cw, off);
+        let moved = (map.keyframes[&reference].pose_cw.translation.vector
+            - before.translation.vector)
+            .norm();
+        assert!(moved > 1e-4, "the free keyframe moved {moved} m");
     }
 
     /// Monocular keyframes come when the frame tracks clearly fewer of the reference's points
