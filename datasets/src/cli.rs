@@ -45,7 +45,7 @@ pub enum Command {
 
 #[derive(Debug, Args)]
 pub struct SynthArgs {
-    /// desk, loop, aliasing, revisit, case-study, turn-in-place or turn-in-place-reference
+    /// desk, loop, aliasing, aliasing-return, revisit, case-study, turn-in-place or turn-in-place-reference
     /// (the same walk without the full turns).
     #[arg(long)]
     pub scenario: String,

@@ -45,10 +45,11 @@ pub struct Scenario {
 }
 
 /// CLI names of all scenarios.
-pub const NAMES: [&str; 7] = [
+pub const NAMES: [&str; 8] = [
     "desk",
     "loop",
     "aliasing",
+    "aliasing-return",
     "revisit",
     "case-study",
     "turn-in-place",
@@ -60,7 +61,8 @@ pub fn build(name: &str, seed: u64) -> Option<Scenario> {
     match name {
         "desk" => Some(desk(seed)),
         "loop" => Some(loop_scenario(seed)),
-        "aliasing" => Some(aliasing(seed)),
+        "aliasing" => Some(aliasing(seed, false)),
+        "aliasing-return" => Some(aliasing(seed, true)),
         "revisit" => Some(revisit(seed)),
         "case-study" => Some(case_study(seed)),
         "turn-in-place" => Some(turn_in_place(seed, true)),
@@ -312,7 +314,13 @@ pub fn loop_scenario(seed: u64) -> Scenario {
 
 /// `aliasing`: two identical rooms joined by a corridor (the second is the first rotated by
 /// 180 degrees about the corridor's centre, so entering it looks exactly like entering the first).
-pub fn aliasing(seed: u64) -> Scenario {
+///
+/// With `back` true, `aliasing-return`: after room B the camera walks back out through room
+/// B's door and along the corridor towards room A. The corridor is not symmetric (its posters
+/// and wall textures differ under the rotation), so a map that merged room B into room A sees
+/// the difference there, and a right join with room A's map comes through room A's door. The
+/// seed changes textures, furniture and hand-held jitter; room B stays an exact copy of room A.
+pub fn aliasing(seed: u64, back: bool) -> Scenario {
     let door = |side, center| Door {
         side,
         center,
@@ -370,6 +378,12 @@ pub fn aliasing(seed: u64) -> Scenario {
         .go(13.5, 2.0)
         .turn_to(210.0)
         .wait(1.0);
+    if back {
+        // At a brisk walk (1.2 m/s peak): the full-size sequence stays within 1,500 frames.
+        r.mark("back");
+        r.speed = 1.2;
+        r.go(10.6, 2.0).go(6.2, 2.0).wait(0.5);
+    }
     let defs: &[(&str, &str, &[&str])] = &[
         ("start", "camera turned on in room A", &["Init", "Idle"]),
         ("explore room A", "looks around room A", &["Mapping"]),
@@ -379,18 +393,29 @@ pub fn aliasing(seed: u64) -> Scenario {
             "enters room B, identical to room A: a closure here is wrong",
             &["Mapping"],
         ),
+        (
+            "back to the corridor",
+            "walks back out of room B and along the corridor towards room A: a merge of room B into room A is contradicted here",
+            &["Mapping", "Localized"],
+        ),
     ];
+    let defs = &defs[..if back { 5 } else { 4 }];
+    let name = if back { "aliasing-return" } else { "aliasing" };
     let session = Session {
         dir: None,
-        name: s("aliasing"),
+        name: s(name),
         legs: vec![r.path(Jitter::new(mix(seed ^ 0x902), 0.005, 0.005, false))],
         steps: steps(&r.marks, defs, 0),
         dark: vec![],
         stamp0: STAMP0,
     };
     Scenario {
-        name: s("aliasing"),
-        description: s("Two identical rooms joined by a corridor (perceptual aliasing)."),
+        name: s(name),
+        description: s(if back {
+            "Two identical rooms joined by a corridor (perceptual aliasing); the camera walks back out of the second room along the corridor."
+        } else {
+            "Two identical rooms joined by a corridor (perceptual aliasing)."
+        }),
         motion: s("hand-held (walking, 1.35 m)"),
         scene: sc,
         sessions: vec![session],
