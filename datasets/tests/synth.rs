@@ -473,10 +473,8 @@ fn aliasing_return_keeps_the_copy_and_walks_back_where_the_copy_ends() {
     for seed in [1, 7] {
         let sc = scenarios::build("aliasing-return", seed).unwrap();
         let copy = |x: f64, y: f64, yaw: f64| {
-            let a = Isometry3::from_parts(
-                Translation3::new(x, y, 1.3),
-                look_rotation(yaw, -0.1, 0.0),
-            );
+            let a =
+                Isometry3::from_parts(Translation3::new(x, y, 1.3), look_rotation(yaw, -0.1, 0.0));
             let b = Isometry3::from_parts(
                 Translation3::new(2.0 * 7.55 - x, 2.0 * 2.0 - y, 1.3),
                 look_rotation(yaw + PI, -0.1, 0.0),
@@ -485,18 +483,27 @@ fn aliasing_return_keeps_the_copy_and_walks_back_where_the_copy_ends() {
         };
         // Inside the rooms, the two views are the same image.
         let rooms = copy(2.0, 1.5, 2.5);
-        assert!(rooms > 0.98, "seed {seed}: rooms A and B share only {rooms}");
+        assert!(
+            rooms > 0.98,
+            "seed {seed}: rooms A and B share only {rooms}"
+        );
         // In the corridor, walking back from room B towards room A (yaw 180°) is not the
         // mirror of walking from room A towards room B: the far door and the room behind it
         // are the copy's (about 58 % of the image with seed 1), the corridor's walls are not.
         let corridor = copy(8.6, 2.0, 0.0);
-        assert!(corridor < 0.7, "seed {seed}: the corridor's two ways share {corridor}");
+        assert!(
+            corridor < 0.7,
+            "seed {seed}: the corridor's two ways share {corridor}"
+        );
         // The walk back ends in the corridor, facing room A.
         let session = &sc.sessions[0];
         let path = session.legs.last().unwrap();
         let end = path.pose(path.end());
         let p = end.translation.vector;
-        assert!(p.x > 5.1 && p.x < 10.0 && (p.y - 2.0).abs() < 0.5, "ends at {p:?}");
+        assert!(
+            p.x > 5.1 && p.x < 10.0 && (p.y - 2.0).abs() < 0.5,
+            "ends at {p:?}"
+        );
         let forward = end.rotation * Vector3::z();
         assert!(forward.x < -0.9, "ends facing {forward:?}");
         let last = session.steps.last().unwrap();
