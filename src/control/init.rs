@@ -85,10 +85,16 @@ impl StateMachine {
             relative: Isometry3::identity(),
             kf: first.id,
         }];
-        let mut tracker =
-            crate::components::tracker::Tracker::new(&self.cfg.tracker, self.geo.clone())
-                .monocular(true);
-        tracker.reset(first.pose_cw, reference.t, &first.points, first.id);
+        // A tracker of their own, at the map's first view: one for the frames after it, one
+        // for those before.
+        let fresh_tracker = || {
+            let mut t =
+                crate::components::tracker::Tracker::new(&self.cfg.tracker, self.geo.clone())
+                    .monocular(true);
+            t.reset(first.pose_cw, reference.t, &first.points, first.id);
+            t
+        };
+        let mut tracker = fresh_tracker();
         let mut observations = Vec::new();
         // A tracked frame's pose, and its observations for Final's refinement.
         fn keep(
@@ -130,10 +136,7 @@ impl StateMachine {
         // reference). The first frame that is not tracked, or a break in the frames, ends
         // it: going on would be a guess.
         let before = self.initializer.take_before();
-        let mut tracker =
-            crate::components::tracker::Tracker::new(&self.cfg.tracker, self.geo.clone())
-                .monocular(true);
-        tracker.reset(first.pose_cw, reference.t, &first.points, first.id);
+        let mut tracker = fresh_tracker();
         let mut next_t = reference.t;
         let mut backwards = 0;
         for b in before.iter().rev() {

@@ -33,6 +33,8 @@ use crate::outputs::{ClosureRow, Flags, Timing, Transition};
 use nalgebra::Isometry3;
 pub use spec::{Activity, Guard, MachineSpec, State};
 
+use std::collections::{BTreeMap, BTreeSet};
+
 /// Monocular: frames posed by their rotation alone, one after another (decision 0030).
 #[derive(Debug, Clone)]
 struct TurnStretch {
@@ -42,7 +44,6 @@ struct TurnStretch {
     /// The panoramic keyframes it made.
     panoramic: Vec<KfId>,
 }
-use std::collections::{BTreeMap, BTreeSet};
 
 /// What one step produced.
 #[derive(Debug, Clone)]
