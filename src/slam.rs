@@ -274,29 +274,13 @@ impl Slam {
             timing.record("extract_track", pre_ms + track_ms);
         }
         // A revoked pool loses no pose: the frames tracked across its seam follow the
-        // camera's side of the cut.
+        // camera's side of the cut, or stay where they were tracked when it has no keyframe.
         for r in &out.revocations {
-            let discarded = &mut self.rec.discarded;
-            self.rec
-                .relative
-                .retain_mut(|(f, t, kf, rel)| match r.reanchor(*f, *kf, rel) {
-                    None => true,
-                    Some(Some((k, new, _))) => {
-                        (*kf, *rel) = (k, new);
-                        true
-                    }
-                    Some(None) => {
-                        discarded.push(DiscardedPose {
-                            frame: *f,
-                            t: *t,
-                            reason: format!(
-                                "tracked after pool {}, revoked, with no keyframe of the camera's side to hold it",
-                                r.pool
-                            ),
-                        });
-                        false
-                    }
-                });
+            for (f, _, kf, rel) in self.rec.relative.iter_mut() {
+                if let Some((k, new, _)) = r.reanchor(*f, *kf, rel) {
+                    (*kf, *rel) = (k, new);
+                }
+            }
         }
         // Earlier frames posed now (monocular frames the initializer waited on): in frame
         // order among the rest.

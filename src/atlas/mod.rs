@@ -764,6 +764,22 @@ mod tests {
         assert!((degrees - 180.0).abs() < 1e-6, "{degrees}");
     }
 
+    /// A relocalization in the lost map revoked before the camera made a keyframe: the camera's
+    /// side has nothing to hold the frames tracked since, and they stay posed where they were
+    /// tracked (issue #77: a revocation discards no tracked pose).
+    #[test]
+    fn a_revoked_relocalization_leaves_its_frames_where_they_were_tracked() {
+        let mut atlas = Atlas::new();
+        let a = small_map(&mut atlas, 0);
+        atlas.activate(a);
+        let ka = *atlas.maps[&a].keyframes.keys().next().unwrap();
+        let p = atlas.begin_pool(PoolKind::Relocalization { map: a }, 5, 5.0);
+        let r = atlas.revoke(p, ORB, &[]).unwrap();
+        let rel = Isometry3::translation(0.0, 0.1, 0.0);
+        assert_eq!(r.reanchor(6, ka, &rel), None);
+        assert!(atlas.maps[&a].keyframes.contains_key(&ka));
+    }
+
     /// Merges map `b` into map `a` (identity alignment) as pool of frame 5; returns the pool.
     fn merged_at_frame_5(atlas: &mut Atlas, a: MapId, b: MapId) -> PoolId {
         let p = atlas.begin_pool(
@@ -928,7 +944,7 @@ mod tests {
         // A frame tracked after the merge against a's keyframe follows the camera's side.
         let rel = Isometry3::translation(0.0, 0.1, 0.0);
         let abs = rel * atlas.maps[&a].keyframes[&ka].pose_cw;
-        let (k, rel2, _) = r.reanchor(6, ka, &rel).unwrap().unwrap();
+        let (k, rel2, _) = r.reanchor(6, ka, &rel).unwrap();
         assert_eq!(k, later);
         let abs2 = rel2 * atlas.maps[&b].keyframes[&later].pose_cw;
         assert!((abs2.translation.vector - abs.translation.vector).norm() < 1e-12);
@@ -1031,8 +1047,8 @@ mod tests {
         );
         // Frames tracked against the far side follow the camera's side of their time.
         let rel = Isometry3::identity();
-        assert_eq!(r.reanchor(7, ka, &rel).unwrap().unwrap().0, before);
-        assert_eq!(r.reanchor(9, ka, &rel).unwrap().unwrap().0, after);
+        assert_eq!(r.reanchor(7, ka, &rel).unwrap().0, before);
+        assert_eq!(r.reanchor(9, ka, &rel).unwrap().0, after);
     }
 
     /// A loop's correction bent the map; revoked, every keyframe is back where it was and

@@ -98,14 +98,16 @@ impl Revocation {
     /// camera was on the near side; the far side only looked like its place), as the two
     /// stood when the pool was revoked; with it, the ratio of the two keyframes' creation
     /// units (what converts the frame's other relative quantities). `None`: nothing to
-    /// change. `Some(None)`: no near keyframe holds it (a relocalization revoked before the
-    /// camera mapped anything).
+    /// change, also when no near keyframe can hold it (a relocalization revoked before the
+    /// camera mapped anything): the frame stays posed where it was tracked, on the far side,
+    /// since the camera's side has nothing to place it by, and a revocation discards nothing
+    /// that was tracked (issue #77).
     pub fn reanchor(
         &self,
         frame: usize,
         kf: KfId,
         rel: &Isometry3<f64>,
-    ) -> Option<Option<(KfId, Isometry3<f64>, f64)>> {
+    ) -> Option<(KfId, Isometry3<f64>, f64)> {
         if frame < self.frame || self.camera_side(frame) != Side::Near {
             return None;
         }
@@ -124,16 +126,14 @@ impl Revocation {
         } else {
             pick(&self.near_anchors)
         };
-        let Some(near) = near else {
-            return Some(None);
-        };
+        let near = near?;
         // Absolute pose as it stood, then relative to the near keyframe (creation units).
         let mut r = *rel;
         r.translation.vector *= far.units;
         let pose_cw = r * far.pose_cw;
         let mut out = pose_cw * near.pose_cw.inverse();
         out.translation.vector /= near.units;
-        Some(Some((near.kf, out, far.units / near.units)))
+        Some((near.kf, out, far.units / near.units))
     }
 }
 

@@ -44,6 +44,8 @@ pub struct GlobalReport {
     /// The residual of the closure edge with the largest χ²: translation (the map's units),
     /// rotation (degrees), |log scale|.
     pub worst_closure_residual: (f64, f64, f64),
+    /// The same for the odometry edge of largest χ².
+    pub worst_odometry_residual: (f64, f64, f64),
 }
 
 /// The odometry information of an edge whose keyframes are `length` metres apart, (ω, υ)
@@ -256,6 +258,15 @@ pub fn optimize_graph(
             (t, r.to_degrees(), s.abs())
         })
         .unwrap_or_default();
+    let worst_odometry_residual = rep.chi2[..n_odometry]
+        .iter()
+        .enumerate()
+        .max_by(|a, b| a.1.total_cmp(b.1))
+        .map(|(k, _)| {
+            let (t, r, s) = graph.edge_residual(k);
+            (t, r.to_degrees(), s.abs())
+        })
+        .unwrap_or_default();
     let consistent = offending.is_empty() && max_odometry <= limit;
     if offending.is_empty() && !consistent {
         offending = pools.iter().copied().collect();
@@ -272,6 +283,7 @@ pub fn optimize_graph(
         max_closure_nchi2: max_closure,
         max_odometry_nchi2: max_odometry,
         worst_closure_residual,
+        worst_odometry_residual,
     }
 }
 

@@ -273,7 +273,7 @@ impl StateMachine {
                     .collect();
                 self.reoptimized.extend(maps.iter().copied());
                 maps.into_iter()
-                    .all(|m| self.global_optimization(m, None).consistent)
+                    .all(|m| self.global_optimization(m, None, None).consistent)
             } else {
                 true
             };

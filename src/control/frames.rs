@@ -77,7 +77,7 @@ impl FrameStore {
             let obs = self.frames.get_mut(&f).expect("listed");
             match r.reanchor(f, obs.kf, &obs.rel) {
                 None => {}
-                Some(Some((k, rel, ratio))) => {
+                Some((k, rel, ratio)) => {
                     if let Some(s) = self.by_keyframe.get_mut(&obs.kf) {
                         s.remove(&f);
                     }
@@ -87,13 +87,6 @@ impl FrameStore {
                     for i in 3..6 {
                         obs.twist[i] *= ratio;
                     }
-                }
-                Some(None) => {
-                    if let Some(s) = self.by_keyframe.get_mut(&obs.kf) {
-                        s.remove(&f);
-                    }
-                    self.frames.remove(&f);
-                    continue;
                 }
             }
             let Some(map) = cut

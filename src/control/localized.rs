@@ -3,7 +3,7 @@
 use super::StateMachine;
 use crate::atlas::{ClosureEdge, MapId, PoolKind};
 use crate::components::global_optimizer::{self, GlobalReport};
-use crate::components::loop_validator::{Accepted, relative_information};
+use crate::components::loop_validator::{self, Accepted, relative_information};
 use crate::components::preprocess::Measurement;
 use crate::geometry::Sim3;
 use crate::map::KfId;
@@ -11,6 +11,9 @@ use crate::outputs::Timing;
 use std::collections::BTreeSet;
 
 use super::actions::*;
+
+/// A merge's pool and its two sides before it: the camera's map's keyframes and the other's.
+type Seam = (crate::atlas::PoolId, BTreeSet<KfId>, BTreeSet<KfId>);
 
 impl StateMachine {
     /// Localized's entry: the accepted pool becomes an atlas transaction — maps merged if it
@@ -93,6 +96,7 @@ impl StateMachine {
             e.pool = pool;
         }
         self.atlas.add_edges(pool, edges);
+        let mut seam = None;
         if into != from {
             // What only the map merged into saw: the merge is provisional until the camera
             // re-observes some of it.
@@ -118,11 +122,42 @@ impl StateMachine {
                     ..Default::default()
                 });
             }
+            let sides = |id: MapId| -> BTreeSet<KfId> {
+                self.atlas
+                    .maps
+                    .get(&id)
+                    .map(|mm| mm.keyframes.keys().copied().collect())
+                    .unwrap_or_default()
+            };
+            // The place the merge itself ties (the query side's keyframes and their covisible
+            // ones, which `fuse_closure` fuses across): the seam is what lies beyond it.
+            let place: BTreeSet<KfId> = self
+                .atlas
+                .maps
+                .get(&from)
+                .map(|q| {
+                    let mut set = BTreeSet::new();
+                    for k in acc
+                        .members
+                        .iter()
+                        .filter_map(|v| v.query_kf.or(v.reference_kf))
+                    {
+                        if let Some(kf) = q.keyframes.get(&k) {
+                            set.insert(k);
+                            set.extend(kf.best_covisible(10));
+                        }
+                    }
+                    set
+                })
+                .unwrap_or_default();
+            let near: BTreeSet<KfId> = sides(from).difference(&place).copied().collect();
+            let far = sides(into);
             if let Err(e) = self.atlas.merge(into, from, &acc.alignment) {
                 tracing::warn!("merge failed: {e}");
                 return;
             }
             tracing::info!("frame {}: map {from} merged into map {into}", m.frame);
+            seam = Some((pool, near, far));
         }
         self.settle_pending_rows(&acc, "accepted", Some(pool));
         let last = acc.members.last().expect("a pool has members");
@@ -143,7 +178,9 @@ impl StateMachine {
         let own_ref_before = own_ref
             .and_then(|r| self.atlas.maps[&into].keyframes.get(&r))
             .map(|k| k.pose_cw);
-        let report = timing.time("global_opt", || self.global_optimization(into, Some(&acc)));
+        let report = timing.time("global_opt", || {
+            self.global_optimization(into, Some(&acc), seam.as_ref())
+        });
         self.flags.consistent_map = report.consistent;
         self.suspects = report.offending_pools;
         // The map was consistent until this pool came: it is a suspect too, whichever older
@@ -242,6 +279,132 @@ impl StateMachine {
         self.settle_pending_rows(&acc, "accepted", Some(pool));
         self.merger.closed(m.frame);
         self.start_localized();
+    }
+
+    /// The merge's other overlaps ([`loop_validator::seam_pairs`]): each keyframe of the
+    /// camera's side (`near`) that sees a scene a keyframe of the other side (`far`) saw is
+    /// validated against it in the joined map, as the pose graph has just placed them. The
+    /// valid pairs are closure edges of the merge's pool (revoked with it); the pose graph is
+    /// tried again with them on a copy of the map, and only if it stays consistent are they
+    /// kept, the copy adopted and their matches fused, so that the full BA that follows holds
+    /// the two sides together there too, as continuous tracking would have. ORB-SLAM3 welds
+    /// only the merge place and leaves the rest to later loops. A seam the map cannot take
+    /// (without depth, a young map's bends) is left out: the merge stands as it was.
+    fn weld_seam(&mut self, into: MapId, (pool, near, far): &Seam) -> usize {
+        let pool = *pool;
+        let Some(map) = self.atlas.maps.get(&into) else {
+            return 0;
+        };
+        let pairs = loop_validator::seam_pairs(map, near, far);
+        let valid: Vec<_> = pairs
+            .iter()
+            .filter_map(|&(q, f)| {
+                match loop_validator::validate_seam_pair(
+                    &self.cfg.loop_closing,
+                    &self.geo,
+                    map,
+                    q,
+                    f,
+                    far,
+                ) {
+                    loop_validator::Verdict::Valid(v) => Some(v),
+                    _ => None,
+                }
+            })
+            .collect();
+        let mut edges = Vec::new();
+        for v in &valid {
+            let (Some(q), Some(f)) = (
+                v.query_kf.and_then(|k| map.keyframes.get(&k)),
+                map.keyframes.get(&v.matched),
+            ) else {
+                continue;
+            };
+            let rel = f.pose_cw * v.pose_in_match.inverse();
+            let z = Sim3 {
+                scale: v.scale,
+                ..Sim3::from_isometry(&rel)
+            };
+            edges.push(ClosureEdge::new(
+                pool,
+                q.id,
+                f.id,
+                &z,
+                (f.units, q.units),
+                relative_information(&rel, &v.information),
+            ));
+        }
+        if edges.is_empty() {
+            return 0;
+        }
+        let mut closures = self.atlas.closure_edges(into);
+        closures.extend(edges.iter().cloned());
+        let mut trial = map.clone();
+        let report = global_optimizer::optimize_map(
+            &self.cfg.loop_closing,
+            &mut trial,
+            &closures,
+            &[],
+            self.mono,
+        );
+        tracing::info!(
+            "merge pool {pool}: {} of {} seam pairs valid; with them the pose graph is {} (max chi2/dof closure {:.2} odometry {:.2})",
+            edges.len(),
+            pairs.len(),
+            if report.consistent {
+                "consistent"
+            } else {
+                "inconsistent: left out"
+            },
+            report.max_closure_nchi2,
+            report.max_odometry_nchi2,
+        );
+        if !report.consistent {
+            return 0;
+        }
+        let n_edges = edges.len();
+        self.atlas.maps.insert(into, trial);
+        self.atlas.add_edges(pool, edges);
+        let map = self.atlas.maps.get_mut(&into).expect("just inserted");
+        let mut fused = 0;
+        let mut seen_by_both = BTreeSet::new();
+        for v in &valid {
+            let Some(q) = v.query_kf else { continue };
+            for (i, target) in v.matches.iter().enumerate() {
+                let Some(target) = target else { continue };
+                if !map.points.contains_key(target) {
+                    continue;
+                }
+                seen_by_both.insert(*target);
+                match map
+                    .keyframes
+                    .get(&q)
+                    .and_then(|k| k.points.get(i).copied().flatten())
+                {
+                    Some(p) if p != *target => {
+                        map.replace_point(p, *target);
+                        fused += 1;
+                    }
+                    None if map.observe(q, i, *target) => fused += 1,
+                    _ => {}
+                }
+            }
+            if map.keyframes.contains_key(&q) {
+                map.update_covisibility(q);
+            }
+        }
+        tracing::debug!("merge pool {pool}: {fused} points fused across the seam");
+        // The camera's map saw these points too: re-observing them cannot tell the place
+        // from a copy of it, so they are no evidence for the merge (decision 0023).
+        if let Some(ev) = self
+            .atlas
+            .pools
+            .get_mut(pool as usize)
+            .and_then(|r| r.evidence.as_mut())
+        {
+            ev.unheld.retain(|p| !seen_by_both.contains(p));
+        }
+        n_edges
     }
 
     /// Replaces a query keyframe's points by the matched map's points it was matched to, then
@@ -442,16 +605,21 @@ impl StateMachine {
     }
 
     /// The global optimizer on map `map`: its pose graph ([`Self::pose_graph`]); when
-    /// consistent, the closure
-    /// just accepted (if any) is fused (see `fuse_closure`) and a full BA follows. Fusing
+    /// consistent, a merge's seam welded ([`Self::weld_seam`]), the closure just accepted (if any) is fused (see `fuse_closure`) and a full BA follows. Fusing
     /// between the two is what keeps the loop closed in the BA: without shared points the BA
     /// has nothing holding the two sides together and relaxes them apart again.
     pub(super) fn global_optimization(
         &mut self,
         map: MapId,
         closure: Option<&Accepted>,
+        seam: Option<&Seam>,
     ) -> GlobalReport {
         let report = self.pose_graph(map);
+        if report.consistent
+            && let Some(seam) = seam
+        {
+            self.weld_seam(map, seam);
+        }
         if report.consistent
             && let Some(acc) = closure
         {
@@ -485,7 +653,7 @@ impl StateMachine {
         let report =
             global_optimizer::optimize_map(&self.cfg.loop_closing, m, &closures, &[], self.mono);
         tracing::info!(
-            "global optimisation of map {map}: {} keyframes, {} odometry + {} closure edges, cost {:.1} -> {:.1} in {} iterations, max chi2/dof closure {:.2} odometry {:.2} (worst closure off by {:.3} / {:.2} deg / scale {:.3}): {}",
+            "global optimisation of map {map}: {} keyframes, {} odometry + {} closure edges, cost {:.1} -> {:.1} in {} iterations, max chi2/dof closure {:.2} odometry {:.2} (worst closure off by {:.3} / {:.2} deg / scale {:.3}, odometry {:.3} / {:.2} deg / scale {:.3}): {}",
             report.keyframes,
             report.odometry_edges,
             report.closure_edges,
@@ -497,6 +665,9 @@ impl StateMachine {
             report.worst_closure_residual.0,
             report.worst_closure_residual.1,
             report.worst_closure_residual.2,
+            report.worst_odometry_residual.0,
+            report.worst_odometry_residual.1,
+            report.worst_odometry_residual.2,
             if report.consistent {
                 "consistent".to_string()
             } else {
