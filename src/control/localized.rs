@@ -15,6 +15,52 @@ use super::actions::*;
 /// A merge's pool and its two sides before it: the camera's map's keyframes and the other's.
 type Seam = (crate::atlas::PoolId, BTreeSet<KfId>, BTreeSet<KfId>);
 
+/// Keyframes `seeds` of `map` and their 10 best covisible ones: the neighbourhood a closure
+/// fuses across (`fuse_closure`), and so the place a merge ties by itself.
+fn around(map: &crate::map::Map, seeds: impl IntoIterator<Item = KfId>) -> BTreeSet<KfId> {
+    let mut set = BTreeSet::new();
+    for k in seeds {
+        if let Some(kf) = map.keyframes.get(&k) {
+            set.insert(k);
+            set.extend(kf.best_covisible(10));
+        }
+    }
+    set
+}
+
+/// Keyframe `q`'s key points take the points they were matched to (`matches`, one per key
+/// point): an own point is replaced by the match, a key point without one observes it.
+/// Returns how many were fused.
+fn fuse_matches(
+    map: &mut crate::map::Map,
+    q: KfId,
+    matches: &[Option<crate::map::PointId>],
+) -> usize {
+    let mut fused = 0;
+    for (i, target) in matches.iter().enumerate() {
+        let Some(target) = target else { continue };
+        if !map.points.contains_key(target) {
+            continue;
+        }
+        let own = map
+            .keyframes
+            .get(&q)
+            .and_then(|k| k.points.get(i).copied().flatten());
+        match own {
+            Some(p) if p != *target => {
+                map.replace_point(p, *target);
+                fused += 1;
+            }
+            None if map.observe(q, i, *target) => fused += 1,
+            _ => {}
+        }
+    }
+    if map.keyframes.contains_key(&q) {
+        map.update_covisibility(q);
+    }
+    fused
+}
+
 impl StateMachine {
     /// Localized's entry: the accepted pool becomes an atlas transaction — maps merged if it
     /// links two, closure edges added, global optimisation with its consistency check — and the
@@ -131,23 +177,17 @@ impl StateMachine {
             };
             // The place the merge itself ties (the query side's keyframes and their covisible
             // ones, which `fuse_closure` fuses across): the seam is what lies beyond it.
-            let place: BTreeSet<KfId> = self
+            let place = self
                 .atlas
                 .maps
                 .get(&from)
                 .map(|q| {
-                    let mut set = BTreeSet::new();
-                    for k in acc
-                        .members
-                        .iter()
-                        .filter_map(|v| v.query_kf.or(v.reference_kf))
-                    {
-                        if let Some(kf) = q.keyframes.get(&k) {
-                            set.insert(k);
-                            set.extend(kf.best_covisible(10));
-                        }
-                    }
-                    set
+                    around(
+                        q,
+                        acc.members
+                            .iter()
+                            .filter_map(|v| v.query_kf.or(v.reference_kf)),
+                    )
                 })
                 .unwrap_or_default();
             let near: BTreeSet<KfId> = sides(from).difference(&place).copied().collect();
@@ -290,10 +330,10 @@ impl StateMachine {
     /// the two sides together there too, as continuous tracking would have. ORB-SLAM3 welds
     /// only the merge place and leaves the rest to later loops. A seam the map cannot take
     /// (without depth, a young map's bends) is left out: the merge stands as it was.
-    fn weld_seam(&mut self, into: MapId, (pool, near, far): &Seam) -> usize {
+    fn weld_seam(&mut self, into: MapId, (pool, near, far): &Seam) {
         let pool = *pool;
         let Some(map) = self.atlas.maps.get(&into) else {
-            return 0;
+            return;
         };
         let pairs = loop_validator::seam_pairs(map, near, far);
         let valid: Vec<_> = pairs
@@ -335,7 +375,7 @@ impl StateMachine {
             ));
         }
         if edges.is_empty() {
-            return 0;
+            return;
         }
         let mut closures = self.atlas.closure_edges(into);
         closures.extend(edges.iter().cloned());
@@ -360,39 +400,21 @@ impl StateMachine {
             report.max_odometry_nchi2,
         );
         if !report.consistent {
-            return 0;
+            return;
         }
-        let n_edges = edges.len();
         self.atlas.maps.insert(into, trial);
         self.atlas.add_edges(pool, edges);
         let map = self.atlas.maps.get_mut(&into).expect("just inserted");
-        let mut fused = 0;
-        let mut seen_by_both = BTreeSet::new();
-        for v in &valid {
-            let Some(q) = v.query_kf else { continue };
-            for (i, target) in v.matches.iter().enumerate() {
-                let Some(target) = target else { continue };
-                if !map.points.contains_key(target) {
-                    continue;
-                }
-                seen_by_both.insert(*target);
-                match map
-                    .keyframes
-                    .get(&q)
-                    .and_then(|k| k.points.get(i).copied().flatten())
-                {
-                    Some(p) if p != *target => {
-                        map.replace_point(p, *target);
-                        fused += 1;
-                    }
-                    None if map.observe(q, i, *target) => fused += 1,
-                    _ => {}
-                }
-            }
-            if map.keyframes.contains_key(&q) {
-                map.update_covisibility(q);
-            }
-        }
+        // The other side's points the pairs matched: fusion keeps them, under their ids.
+        let seen_by_both: BTreeSet<_> = valid
+            .iter()
+            .flat_map(|v| v.matches.iter().flatten().copied())
+            .filter(|p| map.points.contains_key(p))
+            .collect();
+        let fused: usize = valid
+            .iter()
+            .filter_map(|v| Some(fuse_matches(map, v.query_kf?, &v.matches)))
+            .sum();
         tracing::debug!("merge pool {pool}: {fused} points fused across the seam");
         // The camera's map saw these points too: re-observing them cannot tell the place
         // from a copy of it, so they are no evidence for the merge (decision 0023).
@@ -404,7 +426,6 @@ impl StateMachine {
         {
             ev.unheld.retain(|p| !seen_by_both.contains(p));
         }
-        n_edges
     }
 
     /// Replaces a query keyframe's points by the matched map's points it was matched to, then
@@ -413,51 +434,18 @@ impl StateMachine {
         let Some(map) = self.atlas.maps.get_mut(&map_id) else {
             return;
         };
-        let mut fused = 0;
-        for v in &acc.members {
-            let Some(q) = v.query_kf else { continue };
-            for (i, target) in v.matches.iter().enumerate() {
-                let Some(target) = target else { continue };
-                if !map.points.contains_key(target) {
-                    continue;
-                }
-                let own = map
-                    .keyframes
-                    .get(&q)
-                    .and_then(|k| k.points.get(i).copied().flatten());
-                match own {
-                    Some(p) if p != *target => {
-                        map.replace_point(p, *target);
-                        fused += 1;
-                    }
-                    None if map.observe(q, i, *target) => {
-                        fused += 1;
-                    }
-                    _ => {}
-                }
-            }
-            if map.keyframes.contains_key(&q) {
-                map.update_covisibility(q);
-            }
-        }
+        let fused: usize = acc
+            .members
+            .iter()
+            .filter_map(|v| Some(fuse_matches(map, v.query_kf?, &v.matches)))
+            .sum();
         // Then the neighbourhoods: the points around the matched keyframes are projected into
         // the keyframes around the camera (its query or reference keyframe and their covisible
         // neighbours) and duplicates fused, as ORB-SLAM's loop correction does.
-        let around = |map: &crate::map::Map, seeds: &mut dyn Iterator<Item = KfId>| {
-            let mut set = BTreeSet::new();
-            for k in seeds {
-                if let Some(kf) = map.keyframes.get(&k) {
-                    set.insert(k);
-                    set.extend(kf.best_covisible(10));
-                }
-            }
-            set
-        };
-        let matched = around(map, &mut acc.members.iter().map(|v| v.matched));
+        let matched = around(map, acc.members.iter().map(|v| v.matched));
         let current: BTreeSet<KfId> = around(
             map,
-            &mut acc
-                .members
+            acc.members
                 .iter()
                 .filter_map(|v| v.query_kf.or(v.reference_kf)),
         )
@@ -605,7 +593,8 @@ impl StateMachine {
     }
 
     /// The global optimizer on map `map`: its pose graph ([`Self::pose_graph`]); when
-    /// consistent, a merge's seam welded ([`Self::weld_seam`]), the closure just accepted (if any) is fused (see `fuse_closure`) and a full BA follows. Fusing
+    /// consistent, a merge's seam is welded ([`Self::weld_seam`]), the closure just accepted
+    /// (if any) is fused (see `fuse_closure`) and a full BA follows. Fusing
     /// between the two is what keeps the loop closed in the BA: without shared points the BA
     /// has nothing holding the two sides together and relaxes them apart again.
     pub(super) fn global_optimization(
