@@ -313,12 +313,18 @@ pub struct LoopClosingConfig {
     /// ... plus this much per metre between the two keyframes.
     pub odometry_sigma_per_m: f64,
     pub odometry_sigma_deg_per_m: f64,
+    /// Along a loop (`global_optimizer::loop_chi2`), also a random walk in the angle turned:
+    /// this much rotation σ per √radian, and this share of the scene's depth in translation σ
+    /// per √radian (a misread rotation moves the map by its lever arm).
+    pub odometry_sigma_deg_per_sqrt_rad: f64,
+    pub odometry_sigma_depth_per_sqrt_rad: f64,
     /// Floor on a closure edge's uncertainty, added to the validator's estimate.
     pub closure_min_sigma_m: f64,
     pub closure_min_sigma_deg: f64,
     /// What a right closure is off by on a real sensor, added to its uncertainty when the
     /// consistency check judges it (not when the pose graph weighs it).
-    pub closure_sensor_sigma_m: f64,
+    /// (translation: this share of the scene's depth, so it holds in a monocular map's units)
+    pub closure_sensor_sigma_depth: f64,
     pub closure_sensor_sigma_deg: f64,
     /// Keyframes sharing at least this many points are joined in the essential graph.
     pub essential_min_covisibility: u32,
@@ -373,9 +379,11 @@ impl Default for LoopClosingConfig {
             odometry_sigma_deg: 0.5,
             odometry_sigma_per_m: 0.05,
             odometry_sigma_deg_per_m: 2.0,
+            odometry_sigma_deg_per_sqrt_rad: 1.0,
+            odometry_sigma_depth_per_sqrt_rad: 0.02,
             closure_min_sigma_m: 0.005,
             closure_min_sigma_deg: 0.25,
-            closure_sensor_sigma_m: 0.05,
+            closure_sensor_sigma_depth: 0.04,
             closure_sensor_sigma_deg: 1.5,
             essential_min_covisibility: 100,
             full_ba_after_closure: true,
@@ -862,14 +870,26 @@ impl Config {
             0.0,
             180.0,
         );
+        c.range(
+            "loop_closing.odometry_sigma_deg_per_sqrt_rad",
+            l.odometry_sigma_deg_per_sqrt_rad,
+            0.0,
+            180.0,
+        );
+        c.range(
+            "loop_closing.odometry_sigma_depth_per_sqrt_rad",
+            l.odometry_sigma_depth_per_sqrt_rad,
+            0.0,
+            10.0,
+        );
         c.pos("loop_closing.closure_min_sigma_m", l.closure_min_sigma_m);
         c.pos(
             "loop_closing.closure_min_sigma_deg",
             l.closure_min_sigma_deg,
         );
         c.range(
-            "loop_closing.closure_sensor_sigma_m",
-            l.closure_sensor_sigma_m,
+            "loop_closing.closure_sensor_sigma_depth",
+            l.closure_sensor_sigma_depth,
             0.0,
             10.0,
         );

@@ -264,6 +264,24 @@ impl Map {
         id
     }
 
+    /// Median depth of keyframe `k`'s points in its camera, in the map's units (ORB-SLAM's
+    /// scene median depth: what a change of its pose moves the scene by); `None` without
+    /// points in front of it.
+    pub fn scene_depth(&self, k: &Keyframe) -> Option<f64> {
+        let mut z: Vec<f64> = k
+            .points
+            .iter()
+            .flatten()
+            .filter_map(|p| self.points.get(p))
+            .map(|p| (k.pose_cw * nalgebra::Point3::from(p.position)).z)
+            .collect();
+        if z.is_empty() {
+            return None;
+        }
+        z.sort_by(f64::total_cmp);
+        Some(z[(z.len() - 1) / 2]).filter(|m| *m > 0.0)
+    }
+
     /// Whether some keyframe measured the point's depth: a point triangulated from rays a few
     /// degrees apart (`mapping.triangulate_points`) is uncertain along its ray by more than a
     /// depth check's tolerance, so depth checks judge only points measured by depth.

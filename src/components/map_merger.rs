@@ -334,7 +334,7 @@ impl MapMerger {
             // keyframe per frame for 24 frames with 0 new points, then a 1938-point fusion
             // and a loop pool accepted 1 m off (decision 0029).
             let center = track.pose_cw.inverse().translation.vector;
-            if let Some(median) = median_depth(map, ref_kf) {
+            if let Some(median) = map.scene_depth(ref_kf) {
                 weak = (center - ref_kf.center()).norm() >= need * median;
             }
         }
@@ -990,7 +990,7 @@ fn optical_axis(pose_cw: &Isometry3<f64>) -> Vector3<f64> {
 fn scene_median_depth(map: &Map, k: &crate::map::Keyframe) -> Option<f64> {
     let mut k = k;
     for _ in 0..64 {
-        if let Some(d) = median_depth(map, k) {
+        if let Some(d) = map.scene_depth(k) {
             return Some(d);
         }
         if !k.panoramic {
@@ -1038,22 +1038,6 @@ fn view_neighbours(map: &Map, kf: KfId) -> Vec<KfId> {
         .take(PANORAMIC_NEIGHBOURS)
         .map(|(_, id)| id)
         .collect()
-}
-
-/// Median depth of a keyframe's points in its camera (ORB-SLAM's scene median depth).
-fn median_depth(map: &Map, k: &crate::map::Keyframe) -> Option<f64> {
-    let mut z: Vec<f64> = k
-        .points
-        .iter()
-        .flatten()
-        .filter_map(|p| map.points.get(p))
-        .map(|p| (k.pose_cw * Point3::from(p.position)).z)
-        .collect();
-    if z.is_empty() {
-        return None;
-    }
-    z.sort_by(f64::total_cmp);
-    Some(z[(z.len() - 1) / 2]).filter(|m| *m > 0.0)
 }
 
 /// ORB-SLAM's `SearchForTriangulation` without a vocabulary: each keypoint of `k1` that has no

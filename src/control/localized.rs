@@ -642,7 +642,7 @@ impl StateMachine {
         let report =
             global_optimizer::optimize_map(&self.cfg.loop_closing, m, &closures, &[], self.mono);
         tracing::info!(
-            "global optimisation of map {map}: {} keyframes, {} odometry + {} closure edges, cost {:.1} -> {:.1} in {} iterations, max chi2/dof closure {:.2} odometry {:.2} (worst closure off by {:.3} / {:.2} deg / scale {:.3}, odometry {:.3} / {:.2} deg / scale {:.3}): {}",
+            "global optimisation of map {map}: {} keyframes, {} odometry + {} closure edges, cost {:.1} -> {:.1} in {} iterations, max chi2/dof closure {:.2} odometry {:.2} loop {:.2} (worst closure off by {:.3} / {:.2} deg / scale {:.3}, odometry {:.3} / {:.2} deg / scale {:.3}): {}",
             report.keyframes,
             report.odometry_edges,
             report.closure_edges,
@@ -651,6 +651,7 @@ impl StateMachine {
             report.iterations,
             report.max_closure_nchi2,
             report.max_odometry_nchi2,
+            report.max_loop_nchi2,
             report.worst_closure_residual.0,
             report.worst_closure_residual.1,
             report.worst_closure_residual.2,

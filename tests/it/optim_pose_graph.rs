@@ -12,6 +12,8 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 
 const N: usize = 60;
+/// The scenes' depth (the closure sensor noise grows with it).
+const DEPTH: f64 = 1.5;
 
 /// World-to-camera poses on a circle of radius 2 m, looking along the direction of travel,
 /// with a little height wobble.
@@ -35,13 +37,18 @@ fn noise(rng: &mut ChaCha8Rng, sigma_t: f64, sigma_r_deg: f64) -> Isometry3<f64>
     Isometry3::from_parts(Translation3::from(t), UnitQuaternion::from_scaled_axis(r))
 }
 
-/// Constant odometry σ (the synthetic noise below does not grow with the edge length).
+/// Constant odometry σ per edge (the synthetic noise below does not grow with the edge
+/// length); along a path the loop test sums it as the random walk of the turn, which is 6°
+/// per edge here: σ² per radian = (0.5°)² and (1 cm)² per 6°.
 fn cfg() -> LoopClosingConfig {
+    let per_edge = (std::f64::consts::TAU / N as f64).sqrt();
     LoopClosingConfig {
         odometry_sigma_m: 0.01,
         odometry_sigma_deg: 0.5,
         odometry_sigma_per_m: 0.0,
         odometry_sigma_deg_per_m: 0.0,
+        odometry_sigma_deg_per_sqrt_rad: 0.5 / per_edge,
+        odometry_sigma_depth_per_sqrt_rad: 0.01 / per_edge / DEPTH,
         ..Default::default()
     }
 }
@@ -108,7 +115,7 @@ fn pose_graph_converges_to_ground_truth() {
         n.pose = Sim3::from_isometry(&(d * n.pose.to_isometry()));
     }
     let before = max_error(&g);
-    let rep = optimize_graph(&cfg(), &mut g, n_odo, &[0, 0, 0]);
+    let rep = optimize_graph(&cfg(), &mut g, n_odo, &[0, 0, 0], &[DEPTH; N]);
     let after = max_error(&g);
     assert!(before > 0.1, "{before}");
     assert!(after < 1e-6, "max error {before} -> {after} m");
@@ -122,7 +129,7 @@ fn noisy_pose_graph_reaches_the_expected_chi2() {
     let (mut g, n_odo) = graph(&mut rng, &closures, true);
     let before = max_error(&g);
     let pools = vec![0u32; closures.len()];
-    let rep = optimize_graph(&cfg(), &mut g, n_odo, &pools);
+    let rep = optimize_graph(&cfg(), &mut g, n_odo, &pools, &[DEPTH; N]);
     let after = max_error(&g);
     assert!(before > 0.1, "the chain should have drifted: {before} m");
     assert!(after < 0.5 * before, "max error {before} -> {after} m");
@@ -151,13 +158,13 @@ fn injected_wrong_closure_is_flagged() {
         robust: true,
     });
     let pools = vec![0, 0, 0, 7];
-    let rep = optimize_graph(&c, &mut g, n_odo, &pools);
+    let rep = optimize_graph(&c, &mut g, n_odo, &pools, &[DEPTH; N]);
     assert!(!rep.consistent, "{rep:?}");
     assert_eq!(rep.offending_pools, vec![7], "{rep:?}");
     // DCS switched the wrong closure down: the map is not bent by it.
     let after = max_error(&g);
     let (mut clean, _) = graph(&mut ChaCha8Rng::seed_from_u64(6), &closures, true);
-    optimize_graph(&c, &mut clean, n_odo, &[0, 0, 0]);
+    optimize_graph(&c, &mut clean, n_odo, &[0, 0, 0], &[DEPTH; N]);
     let reference = max_error(&clean);
     assert!(
         after < reference + 0.02,
@@ -224,4 +231,123 @@ fn sim3_graph_corrects_scale_drift() {
     // The loop's last pose is back at scale 1 relative to the first.
     let s_last = g.nodes[N - 1].pose.scale / g.nodes[0].pose.scale;
     assert!((s_last - 1.0).abs() < 0.05, "scale {s_last}");
+}
+
+/// The fr1 sequences' median scene depth at their closures (1.24-1.36 m).
+const FR1_DEPTH: f64 = 1.3;
+
+/// A full turn in place, as a hand-held camera makes it: `n` keyframes on a 10 cm circle
+/// looking outward, 360° in all, and keyframe `n` back at keyframe 0's pose. The tracked
+/// poses drift steadily to `drift_m` (sideways) and `drift_deg` (about the turn's axis) at
+/// keyframe `n`; odometry edges measure them, with the default config's information, and a
+/// closure edge measures keyframe `n` exactly where keyframe 0 is. Lengths are in `units` per
+/// metre (a monocular map's own units).
+fn full_turn(n: usize, drift_m: f64, drift_deg: f64, units: f64) -> (PoseGraph, usize, Vec<f64>) {
+    let c = LoopClosingConfig::default();
+    let pose = |i: usize, drift: f64| {
+        let a = (i % n) as f64 / n as f64 * std::f64::consts::TAU;
+        let centre = Vector3::new(0.1 * a.cos(), 0.1 * a.sin() + drift * drift_m, 0.0) * units;
+        let look = UnitQuaternion::from_euler_angles(0.0, 0.0, a + drift * drift_deg.to_radians());
+        Isometry3::from_parts(Translation3::from(centre), look).inverse()
+    };
+    let truth: Vec<Isometry3<f64>> = (0..=n).map(|i| pose(i, 0.0)).collect();
+    let tracked: Vec<Isometry3<f64>> = (0..=n).map(|i| pose(i, i as f64 / n as f64)).collect();
+    let depth = FR1_DEPTH * units;
+    let mut g = PoseGraph::default();
+    g.nodes.push(node(&tracked[0], true));
+    for i in 1..=n {
+        let z = tracked[i - 1] * tracked[i].inverse();
+        g.nodes.push(node(&tracked[i], false));
+        g.edges.push(PgEdge {
+            i: i - 1,
+            j: i,
+            measurement: Sim3::from_isometry(&z),
+            information: info7(&odometry_information(&c, z.translation.vector.norm()), 1.0),
+            robust: false,
+        });
+    }
+    let n_odometry = g.edges.len();
+    // The validator's estimate of a closure from ~100 inliers: a few mm, a tenth of a degree.
+    let validator = Matrix6::from_diagonal(&nalgebra::Vector6::new(
+        3e5,
+        3e5,
+        3e5,
+        1e5 / (units * units),
+        1e5 / (units * units),
+        1e5 / (units * units),
+    ));
+    g.edges.push(PgEdge {
+        i: 0,
+        j: n,
+        measurement: Sim3::from_isometry(&(truth[0] * truth[n].inverse())),
+        information: info7(&closure_information(&c, &validator), 1.0),
+        robust: true,
+    });
+    (g, n_odometry, vec![depth; n + 1])
+}
+
+#[test]
+fn a_full_turn_drifted_as_a_real_tracker_drifts_is_consistent_and_three_times_that_is_not() {
+    // What the consistency check must tell apart, whatever the keyframes that cut the turn:
+    // 10 cm / 2.7° after a full turn is what a right loop is off by on fr1 (decision 0032); 0.3
+    // m / 10° is a loop the odometry cannot have made. A per-edge test judged the four-keyframe
+    // turn (each edge 90°) stricter than the thirty-six-keyframe one.
+    for n in [4, 36] {
+        for units in [1.0, 0.37] {
+            let (mut g, n_odo, depths) = full_turn(n, 0.10, 2.7, units);
+            let rep = optimize_graph(&LoopClosingConfig::default(), &mut g, n_odo, &[0], &depths);
+            assert!(rep.consistent, "{n} keyframes, units {units}: {rep:?}");
+            let (mut g, n_odo, depths) = full_turn(n, 0.30, 10.0, units);
+            let rep = optimize_graph(&LoopClosingConfig::default(), &mut g, n_odo, &[0], &depths);
+            assert!(!rep.consistent, "{n} keyframes, units {units}: {rep:?}");
+            assert_eq!(rep.offending_pools, vec![0]);
+        }
+    }
+}
+
+#[test]
+fn a_closure_off_by_what_a_real_sensor_gives_passes_and_a_look_alike_offset_fails() {
+    // A short straight chain with exact odometry (the camera came back 60 cm later); the
+    // closure itself is off: 10 cm / 2.7° (the worst right closure on fr1, decision 0021)
+    // must stand, 0.3 m / 10° must be condemned, in metres and in a monocular map's units.
+    let c = LoopClosingConfig::default();
+    for units in [1.0, 0.37] {
+        for (off_m, off_deg, right) in [(0.10, 2.7f64, true), (0.30, 10.0, false)] {
+            let poses: Vec<Isometry3<f64>> = (0..7)
+                .map(|i| Isometry3::translation(0.1 * i as f64 * units, 0.0, 0.0).inverse())
+                .collect();
+            let mut g = PoseGraph::default();
+            for (i, p) in poses.iter().enumerate() {
+                g.nodes.push(node(p, i == 0));
+            }
+            for i in 1..poses.len() {
+                let z = poses[i - 1] * poses[i].inverse();
+                g.edges.push(PgEdge {
+                    i: i - 1,
+                    j: i,
+                    measurement: Sim3::from_isometry(&z),
+                    information: info7(&odometry_information(&c, 0.1 * units), 1.0),
+                    robust: false,
+                });
+            }
+            let off = Isometry3::from_parts(
+                Translation3::new(0.0, off_m * units, 0.0),
+                UnitQuaternion::from_euler_angles(0.0, off_deg.to_radians(), 0.0),
+            );
+            let validator = Matrix6::identity() * 1e5 / (units * units);
+            g.edges.push(PgEdge {
+                i: 0,
+                j: 6,
+                measurement: Sim3::from_isometry(&(poses[0] * poses[6].inverse() * off)),
+                information: info7(&closure_information(&c, &validator), 1.0),
+                robust: true,
+            });
+            let depths = vec![FR1_DEPTH * units; 7];
+            let rep = optimize_graph(&c, &mut g, 6, &[3], &depths);
+            assert_eq!(
+                rep.consistent, right,
+                "units {units}, {off_m} m / {off_deg}°: {rep:?}"
+            );
+        }
+    }
 }
