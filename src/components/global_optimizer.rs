@@ -257,9 +257,9 @@ pub fn loop_chi2(
 ) -> Vec<Option<f64>> {
     let n = graph.nodes.len();
     let centre = |i: usize| graph.nodes[i].pose.inverse().translation;
-    let closure_cov = |k: usize| -> Option<Matrix6<f64>> {
+    let closure_cov_of = |k: usize| -> Option<Matrix6<f64>> {
         let e = &graph.edges[k];
-        let depth = 0.5 * (depths[e.i] + depths[e.j]);
+        let depth = edge_depth(e, depths);
         let cov = e
             .information
             .try_inverse()
@@ -267,6 +267,10 @@ pub fn loop_chi2(
         let cov = 0.5 * (cov + cov.transpose()) + sensor_information(cfg, depth);
         Some(cov.fixed_view::<6, 6>(0, 0).into_owned())
     };
+    let closure_covs: Vec<Option<Matrix6<f64>>> = (n_odometry..graph.edges.len())
+        .map(closure_cov_of)
+        .collect();
+    let closure_cov = |k: usize| closure_covs[k - n_odometry];
     let walk_r = cfg.odometry_sigma_deg_per_sqrt_rad.to_radians().powi(2);
     let walk_t = cfg.odometry_sigma_depth_per_sqrt_rad.powi(2);
     // Per edge: (length, rotation variance, translation variance) of its drift — for an
@@ -277,7 +281,7 @@ pub fn loop_chi2(
             if k < n_odometry {
                 let z = &e.measurement;
                 let angle = nalgebra::UnitQuaternion::from_rotation_matrix(&z.rotation).angle();
-                let depth = 0.5 * (depths[e.i] + depths[e.j]);
+                let depth = edge_depth(e, depths);
                 let length = z.translation.norm();
                 Some((length, walk_r * angle, walk_t * depth * depth * angle))
             } else {
@@ -373,6 +377,11 @@ pub fn loop_chi2(
         .collect()
 }
 
+/// The scene depth at an edge: the mean of its two keyframes' (`depths`, per node).
+fn edge_depth(e: &PgEdge, depths: &[f64]) -> f64 {
+    0.5 * (depths[e.i] + depths[e.j])
+}
+
 /// A total order on finite costs, for the loop test's priority queue.
 #[derive(PartialEq, PartialOrd)]
 struct Ordered(f64);
@@ -426,26 +435,21 @@ pub fn optimize_graph(
     // misregistration, rolling shutter, blur: a share of the scene's depth, decisions 0021
     // and 0032; under the validator's own estimate right closures score 4-40 χ²/dof), not
     // beyond the validator's estimate alone. The optimisation weighs each closure by the latter.
-    let mut offending: BTreeSet<PoolId> = (n_odometry..graph.edges.len())
-        .zip(pools)
-        .filter(|(k, _)| {
-            let e = &graph.edges[*k];
-            let sensor = sensor_information(cfg, 0.5 * (depths[e.i] + depths[e.j]));
-            let info = with_sensor_noise(&e.information, &sensor);
-            graph.edge_chi2_under(*k, &info) / dof > limit
-        })
-        .map(|(_, p)| *p)
-        .collect();
+    // Each closure's χ²/dof with the sensor's noise, and whether it is contradicted.
+    let mut offending: BTreeSet<PoolId> = BTreeSet::new();
     for (k, p) in (n_odometry..graph.edges.len()).zip(pools) {
         let e = &graph.edges[k];
-        let depth = 0.5 * (depths[e.i] + depths[e.j]);
+        let depth = edge_depth(e, depths);
         let info = with_sensor_noise(&e.information, &sensor_information(cfg, depth));
+        let judged = graph.edge_chi2_under(k, &info) / dof;
+        if judged > limit {
+            offending.insert(*p);
+        }
         let (t, r, _) = graph.edge_residual(k);
         tracing::debug!(
-            "closure edge of pool {p}: off by {t:.3} ({:.3} of the depth {depth:.2}) / {:.2} deg, judged chi2/dof {:.2}, loop chi2/dof {}",
+            "closure edge of pool {p}: off by {t:.3} ({:.3} of the depth {depth:.2}) / {:.2} deg, judged chi2/dof {judged:.2}, loop chi2/dof {}",
             t / depth,
             r.to_degrees(),
-            graph.edge_chi2_under(k, &info) / dof,
             loops[k - n_odometry].map_or("-".into(), |c| format!("{:.2}", c / 6.0))
         );
     }

@@ -300,28 +300,29 @@ pub fn seam_pairs(map: &Map, near: &BTreeSet<KfId>, far: &BTreeSet<KfId>) -> Vec
         if n.panoramic {
             continue;
         }
-        // The scene's depth: the sensor's, or without depth the distance to its points.
+        // The scene's depth: the sensor's, or without depth its points' (`Map::scene_depth`).
         let mut depths: Vec<f64> = n
             .depth
             .iter()
             .filter(|d| **d > 0.0)
             .map(|d| *d as f64)
             .collect();
-        if depths.len() < MIN_SEAM_POINTS {
-            let c = n.center();
-            depths = n
-                .points
-                .iter()
-                .flatten()
-                .filter_map(|p| map.points.get(p))
-                .map(|p| (p.position - c).norm())
-                .collect();
-        }
-        if depths.len() < MIN_SEAM_POINTS {
+        let depth = if depths.len() >= MIN_SEAM_POINTS {
+            let mid = depths.len() / 2;
+            *depths.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1
+        } else if n
+            .points
+            .iter()
+            .flatten()
+            .filter(|p| map.points.contains_key(p))
+            .count()
+            >= MIN_SEAM_POINTS
+            && let Some(d) = map.scene_depth(n)
+        {
+            d
+        } else {
             continue;
-        }
-        let mid = depths.len() / 2;
-        let depth = *depths.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1;
+        };
         let (c, a) = (n.center(), axis(n));
         let best = far
             .iter()
