@@ -383,9 +383,18 @@ fn edge_depth(e: &PgEdge, depths: &[f64]) -> f64 {
 }
 
 /// A total order on finite costs, for the loop test's priority queue.
-#[derive(PartialEq, PartialOrd)]
 struct Ordered(f64);
+impl PartialEq for Ordered {
+    fn eq(&self, other: &Self) -> bool {
+        self.cmp(other).is_eq()
+    }
+}
 impl Eq for Ordered {}
+impl PartialOrd for Ordered {
+    fn partial_cmp(&self, other: &Self) -> Option<std::cmp::Ordering> {
+        Some(self.cmp(other))
+    }
+}
 impl Ord for Ordered {
     fn cmp(&self, other: &Self) -> std::cmp::Ordering {
         self.0.total_cmp(&other.0)
