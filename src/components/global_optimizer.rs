@@ -58,10 +58,17 @@ pub struct GlobalReport {
 /// length. What the camera turned is judged along whole loops ([`loop_chi2`]), not here: see
 /// decision 0032 for the per-edge per-radian σ that was measured and not adopted.
 pub fn odometry_information(cfg: &LoopClosingConfig, length: f64) -> Matrix6<f64> {
-    let sr = (cfg.odometry_sigma_deg + cfg.odometry_sigma_deg_per_m * length).to_radians();
-    let st = cfg.odometry_sigma_m + cfg.odometry_sigma_per_m * length;
+    let (sr, st) = odometry_sigmas(cfg, length);
     let (wr, wt) = (1.0 / (sr * sr), 1.0 / (st * st));
     Matrix6::from_diagonal(&nalgebra::Vector6::new(wr, wr, wr, wt, wt, wt))
+}
+
+/// The odometry σ over `length` (the map's units): rotation (radians), translation.
+fn odometry_sigmas(cfg: &LoopClosingConfig, length: f64) -> (f64, f64) {
+    (
+        (cfg.odometry_sigma_deg + cfg.odometry_sigma_deg_per_m * length).to_radians(),
+        cfg.odometry_sigma_m + cfg.odometry_sigma_per_m * length,
+    )
 }
 
 /// A closure's information with the config's floor added to its covariance (the validator's
@@ -360,8 +367,7 @@ pub fn loop_chi2(
                 predicted = step.compose(&predicted);
                 v = u;
             }
-            let sr = (cfg.odometry_sigma_deg + cfg.odometry_sigma_deg_per_m * length).to_radians();
-            let st = cfg.odometry_sigma_m + cfg.odometry_sigma_per_m * length;
+            let (sr, st) = odometry_sigmas(cfg, length);
             let mut cov = closure_cov(k)?;
             for i in 0..3 {
                 cov[(i, i)] += rot + sr * sr;
